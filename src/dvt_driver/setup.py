@@ -1,0 +1,30 @@
+from setuptools import find_packages, setup
+
+package_name = 'dvt_driver'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    package_data={package_name: ['py.typed', 'config/*.yaml']},
+    include_package_data=True,
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='dvt developers',
+    maintainer_email='dvt@example.com',
+    description='DVT serial link: wire protocol, lifecycle driver node, simulated plant, experiments, recorder and launcher',
+    license='Apache-2.0',
+    extras_require={'test': ['pytest']},
+    entry_points={'console_scripts': [
+        'dvt_driver_node = dvt_driver.driver_node:main',
+        'dvt-plant = dvt_driver.plant:main',
+        'dvt-experiment = dvt_driver.experiment:main',
+        'dvt-recorder = dvt_driver.recorder:main',
+        'dvt-bag = dvt_driver.bagtool:main',
+        'dvt-launch = dvt_driver.launch:main',
+    ]},
+)

@@ -1,0 +1,1 @@
+"""dvt_identify."""

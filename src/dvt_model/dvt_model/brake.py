@@ -1,0 +1,52 @@
+"""Band-brake law and engagement.
+
+Static torque (band brake, thesis eq. 4.82 in form): the brake motor's torque ``k_b i`` is
+turned by the screw/lever into a band pull ``F = G k_b i`` and the wrapped band holds
+
+    T_static(i) = F (exp(mu theta) - 1) r_drum            [N m]
+
+(about 1 N m at 0.125 A with the bundled data). The band's available torque follows the
+static value with a first-order lag, ``T_cap' = (T_static(i) - T_cap) / tau``, so a step of
+current gives ``T_cap = T_static (1 - exp(-t / tau))``. While the ring slips the band applies
+``-T_cap sign(omega_ring)``; it locks the ring when the ring's speed reaches zero and the
+holding torque needed is within ``static_factor * T_cap``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from dvt_model.params import BrakeParams
+
+
+def static_torque(brake: BrakeParams, current: ArrayLike) -> NDArray[np.float64]:
+    """Static band torque [N m] for brake-motor current(s) [A]; negative currents release.
+
+    Shape follows ``current``.
+    """
+    i = np.asarray(current, dtype=float)
+    return np.asarray(brake.gain * np.clip(i, 0.0, None))
+
+
+def engagement_profile(t: ArrayLike, time_constant: float) -> NDArray[np.float64]:
+    """Normalised first-order engagement ``1 - exp(-t/tau)`` (0 for t < 0), shape of ``t``."""
+    tt = np.asarray(t, dtype=float)
+    return np.asarray(np.where(tt > 0.0, -np.expm1(-np.clip(tt, 0.0, None) / time_constant), 0.0))
+
+
+def capacity_step(capacity: NDArray[np.float64], target: NDArray[np.float64], dt: float,
+                  time_constant: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Advance the first-order band capacity by ``dt`` exactly.
+
+    Args:
+        capacity: capacity at the step start [N m], shape (3,).
+        target: static torque held over the step [N m], shape (3,).
+
+    Returns:
+        (capacity at the step end, mean capacity over the step), each shape (3,).
+    """
+    e = np.exp(-dt / time_constant)
+    end = target + (capacity - target) * e
+    mean = target + (capacity - target) * (1.0 - e) * time_constant / dt
+    return end, mean

@@ -1,0 +1,33 @@
+"""Errors raised by the dvt_model core.
+
+Every error names what was wrong (file, key, value) so that a user can fix the input
+without reading the code.
+"""
+
+from __future__ import annotations
+
+
+class DvtModelError(Exception):
+    """Base class of every error raised by :mod:`dvt_model`."""
+
+
+class ParameterError(DvtModelError, ValueError):
+    """A parameter set (YAML file or mapping) is invalid.
+
+    The message names the source, the key path and the offending value.
+    """
+
+
+class ModelError(DvtModelError, ValueError):
+    """A model quantity is unusable (not SPD, wrong shape, not finite)."""
+
+
+class SimulationError(DvtModelError, ValueError):
+    """Inputs to a simulation are inconsistent (shapes, non-finite values, time order)."""
+
+
+class BagError(DvtModelError, ValueError):
+    """A recording is unreadable or violates the interface contract.
+
+    The message names the bag path, the topic and the field.
+    """

@@ -1,0 +1,381 @@
+"""Hybrid simulation of the DVT: 2-DOF while no band holds, 1-DOF in a locked gear.
+
+State: ``omega = (omega_sun, omega_carrier3)`` [rad/s], band capacities ``T_cap`` (3,) [N m] and
+which rings are locked. Inputs per step (zero-order hold): drive-motor current [A] and the
+three brake-motor currents [A].
+
+Each step of length ``dt``:
+
+1. the band capacities advance exactly (first-order lag, :func:`dvt_model.brake.capacity_step`);
+2. a locked ring is released when the holding torque it needs exceeds
+   ``static_factor * T_cap`` (it then slips in the direction the load drives it);
+3. the linear dynamics restricted to the unlocked subspace, ``omega = N z``,
+   ``(N^T M N) z' = -N^T D N z + N^T f`` with the generalised force ``f`` held over the step,
+   are advanced by the exact zero-order-hold discretisation (``scipy.linalg.expm``, cached per
+   lock set and step length);
+4. if a slipping ring with an engaged band crosses zero speed within the step, the step is split
+   at the crossing; the ring locks if the band can hold it (velocities projected onto the
+   constraint conserving momentum, ``omega+ = N (N^T M N)^-1 N^T M omega-``), else the sliding
+   torque reverses.
+
+A ring slipping with the band on gets ``-T_cap sign(omega_ring)`` on its generalised speed.
+An optional ``extra_force(omega, t) -> (2,)`` adds generalised torques (the plant's hidden
+effects), evaluated at the step start and held over the step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import expm, null_space
+
+from dvt_model.brake import capacity_step, static_torque
+from dvt_model.dynamics import RigidModel, rigid_model
+from dvt_model.errors import SimulationError
+from dvt_model.params import BrakeParams, TransmissionParams
+
+Array = NDArray[np.float64]
+ExtraForce = Callable[[Array, float], Array]
+Engagement = Callable[[Array, Array, float, Array], tuple[Array, Array]]
+"""``(capacity (3,), static target (3,), dt, ring speeds (3,)) -> (capacity at end, mean)``."""
+LockSet = tuple[bool, bool, bool]
+
+_ENGAGED = 1e-9  # N m: a band with less capacity than this is released
+_ZERO_SPEED = 1e-9  # rad/s
+
+
+@dataclass(frozen=True)
+class HybridState:
+    """Instantaneous state of the hybrid model.
+
+    Attributes:
+        t: time [s].
+        omega: (omega_sun, omega_carrier3) [rad/s], shape (2,).
+        capacity: each band's available torque [N m], shape (3,).
+        locked: which rings are held by their band.
+        holding: torque each locked band applies to hold its ring [N m], shape (3,)
+            (0 for unlocked bands).
+    """
+
+    t: float
+    omega: Array
+    capacity: Array
+    locked: LockSet
+    holding: Array
+
+    @property
+    def gear(self) -> int:
+        """1-3 for one locked band, 0 for none (neutral or slipping), -1 for a tie-up."""
+        n = sum(self.locked)
+        if n == 0:
+            return 0
+        if n > 1:
+            return -1
+        return self.locked.index(True) + 1
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Sampled simulation output.
+
+    Attributes:
+        t: sample times [s], shape (N,).
+        omega: speeds at each sample [rad/s], shape (N, 2).
+        capacity: band capacities [N m], shape (N, 3).
+        locked: lock state, shape (N, 3), bool.
+        gear: gear state per sample (see :attr:`HybridState.gear`), shape (N,).
+    """
+
+    t: Array
+    omega: Array
+    capacity: Array
+    locked: NDArray[np.bool_]
+    gear: NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class _Mode:
+    N: Array  # (2, n) orthonormal basis of admissible velocities
+    Mr_inv: Array  # (n, n)
+    Phi: Array  # (n, n)
+    Gamma: Array  # (n, 2): generalised force held over dt -> delta z
+
+
+class HybridModel:
+    """The hybrid DVT model; stateless apart from a cache of discretisations.
+
+    Args:
+        rigid: M, D, Q of the transmission.
+        brake: band-brake data.
+        extra_force: optional generalised torque ``f(omega (2,), t) -> (2,)`` [N m].
+        engagement: optional replacement of the first-order band engagement (same contract
+            as :func:`dvt_model.brake.capacity_step` plus the ring speeds), e.g. a wet-to-dry
+            band in the simulated plant.
+    """
+
+    def __init__(self, rigid: RigidModel, brake: BrakeParams,
+                 extra_force: ExtraForce | None = None,
+                 engagement: Engagement | None = None) -> None:
+        self.rigid = rigid
+        self.brake = brake
+        self.extra_force = extra_force
+        self.engagement = engagement
+        self._ring = np.asarray(rigid.Q_brake, dtype=float)  # (2, 3) ring speed forms
+        self._modes: dict[tuple[LockSet, float], _Mode] = {}
+        self._bases: dict[LockSet, tuple[Array, Array, Array]] = {}
+
+    @classmethod
+    def from_params(cls, params: TransmissionParams, extra_force: ExtraForce | None = None,
+                    engagement: Engagement | None = None) -> HybridModel:
+        """Build from a parameter set."""
+        return cls(rigid_model(params), params.brake, extra_force, engagement)
+
+    # ------------------------------------------------------------------ helpers
+    def ring_speeds(self, omega: ArrayLike) -> Array:
+        """Ring 1-3 speeds [rad/s] for ``omega`` of shape (2,) or (N, 2) -> (3,) or (N, 3)."""
+        return np.asarray(np.asarray(omega, dtype=float) @ self._ring)
+
+    def _basis(self, locked: LockSet) -> tuple[Array, Array, Array]:
+        cached = self._bases.get(locked)
+        if cached is not None:
+            return cached
+        idx = [k for k in range(3) if locked[k]]
+        if idx:
+            C = self._ring[:, idx]
+            N = null_space(C.T)
+        else:
+            N = np.eye(2)
+        M, D = self.rigid.M, self.rigid.D
+        Mr = N.T @ M @ N
+        Mr_inv = np.linalg.inv(Mr) if N.shape[1] else np.zeros((0, 0))
+        Ar = -Mr_inv @ (N.T @ D @ N) if N.shape[1] else np.zeros((0, 0))
+        out = (N, Mr_inv, Ar)
+        self._bases[locked] = out
+        return out
+
+    def _mode(self, locked: LockSet, dt: float) -> _Mode:
+        key = (locked, round(dt, 12))
+        mode = self._modes.get(key)
+        if mode is None:
+            mode = self._discretise(locked, dt)
+            if len(self._modes) < 256:
+                self._modes[key] = mode
+        return mode
+
+    def _discretise(self, locked: LockSet, dt: float) -> _Mode:
+        N, Mr_inv, Ar = self._basis(locked)
+        n = N.shape[1]
+        if n == 0:
+            return _Mode(N, Mr_inv, np.zeros((0, 0)), np.zeros((0, 2)))
+        Br = Mr_inv @ N.T  # (n, 2)
+        big = np.zeros((n + 2, n + 2))
+        big[:n, :n] = Ar
+        big[:n, n:] = Br
+        e = expm(big * dt)
+        return _Mode(N, Mr_inv, e[:n, :n], e[:n, n:])
+
+    def _forces(self, omega: Array, t: float, i_motor: float, cap: Array,
+                signs: Array, locked: LockSet) -> Array:
+        f = self.rigid.Q_motor * (self.rigid.motor_constant * i_motor)
+        for k in range(3):
+            if not locked[k] and signs[k] != 0.0 and cap[k] > _ENGAGED:
+                f = f - self._ring[:, k] * (cap[k] * signs[k])
+        if self.extra_force is not None:
+            f = f + np.asarray(self.extra_force(omega, t), dtype=float)
+        return np.asarray(f)
+
+    def holding_torques(self, omega: Array, f: Array, locked: LockSet) -> Array:
+        """Torque each locked band must apply to keep its ring still [N m], shape (3,).
+
+        Args:
+            omega: current speeds (admissible for ``locked``), shape (2,).
+            f: generalised force of everything but the locked bands, shape (2,).
+        """
+        out = np.zeros(3)
+        idx = [k for k in range(3) if locked[k]]
+        if not idx:
+            return out
+        N, Mr_inv, _ = self._basis(locked)
+        rhs = -self.rigid.D @ omega + f
+        acc = N @ (Mr_inv @ (N.T @ rhs)) if N.shape[1] else np.zeros(2)
+        C = self._ring[:, idx]
+        lam, *_ = np.linalg.lstsq(C, self.rigid.M @ acc - rhs, rcond=None)
+        out[idx] = lam
+        return out
+
+    def _project(self, omega: Array, locked: LockSet) -> Array:
+        N, Mr_inv, _ = self._basis(locked)
+        if N.shape[1] == 0:
+            return np.zeros(2)
+        M = self.rigid.M
+        return np.asarray(N @ (Mr_inv @ (N.T @ (M @ omega))))
+
+    # ------------------------------------------------------------------ public API
+    def initial_state(self, omega: ArrayLike = (0.0, 0.0), t: float = 0.0,
+                      locked: LockSet = (False, False, False),
+                      capacity: ArrayLike = (0.0, 0.0, 0.0)) -> HybridState:
+        """A state at rest or at given speeds (projected onto ``locked``'s constraint)."""
+        w = np.asarray(omega, dtype=float).reshape(2)
+        if not np.all(np.isfinite(w)):
+            raise SimulationError(f"omega: expected finite speeds, got {w.tolist()}")
+        cap = np.asarray(capacity, dtype=float).reshape(3)
+        if any(locked):
+            w = self._project(w, locked)
+        return HybridState(t=float(t), omega=w, capacity=cap, locked=locked, holding=np.zeros(3))
+
+    def step(self, state: HybridState, dt: float, i_motor: float,
+             i_brake: ArrayLike) -> HybridState:
+        """Advance ``state`` by ``dt`` [s] with currents held (ZOH): motor [A], brakes (3,) [A]."""
+        if not dt > 0.0:
+            raise SimulationError(f"dt: expected > 0 s, got {dt!r}")
+        ib = np.asarray(i_brake, dtype=float).reshape(3)
+        target = static_torque(self.brake, ib)
+        omega = state.omega
+        locked = state.locked
+        rings = omega @ self._ring
+        if self.engagement is None:
+            cap_end, cap_mean = capacity_step(state.capacity, target, dt,
+                                              self.brake.time_constant)
+        else:
+            cap_end, cap_mean = self.engagement(state.capacity, target, dt, rings)
+        hold_cap = self.brake.static_factor * cap_mean
+        signs = np.sign(rings)
+        # releases: a locked band that cannot hold the ring any more lets it slip
+        for _ in range(3):
+            if not any(locked):
+                break
+            f = self._forces(omega, state.t, i_motor, cap_mean, signs, locked)
+            lam = self.holding_torques(omega, f, locked)
+            excess = [abs(lam[k]) / max(hold_cap[k], _ENGAGED) if locked[k] else 0.0
+                      for k in range(3)]
+            k = int(np.argmax(excess))
+            if excess[k] <= 1.0:
+                break
+            locked = _with(locked, k, False)
+            signs[k] = -np.sign(lam[k])
+        # engagement at rest: a still ring with an engaged band locks if it can be held
+        for k in range(3):
+            if (not locked[k] and cap_mean[k] > _ENGAGED and abs(rings[k]) < _ZERO_SPEED
+                    and self._can_lock(omega, state.t, i_motor, cap_mean, signs, locked, k)):
+                locked = _with(locked, k, True)
+                omega = self._project(omega, locked)
+        omega, locked, signs = self._advance(omega, state.t, dt, i_motor, cap_mean, signs,
+                                             locked, depth=0)
+        f = self._forces(omega, state.t + dt, i_motor, cap_end, signs, locked)
+        holding = self.holding_torques(omega, f, locked)
+        return HybridState(t=state.t + dt, omega=omega, capacity=cap_end, locked=locked,
+                           holding=holding)
+
+    def _can_lock(self, omega: Array, t: float, i_motor: float, cap: Array, signs: Array,
+                  locked: LockSet, k: int) -> bool:
+        trial = _with(locked, k, True)
+        w = self._project(omega, trial)
+        f = self._forces(w, t, i_motor, cap, signs, trial)
+        lam = self.holding_torques(w, f, trial)
+        return bool(abs(lam[k]) <= self.brake.static_factor * cap[k])
+
+    def _advance(self, omega: Array, t: float, dt: float, i_motor: float, cap: Array,
+                 signs: Array, locked: LockSet, depth: int
+                 ) -> tuple[Array, LockSet, Array]:
+        if depth == 0:
+            mode = self._mode(locked, dt)
+        else:
+            mode = self._discretise(locked, dt)
+        f = self._forces(omega, t, i_motor, cap, signs, locked)
+        if mode.N.shape[1] == 0:
+            return np.zeros(2), locked, signs
+        z = mode.N.T @ omega
+        omega_end = mode.N @ (mode.Phi @ z + mode.Gamma @ f)
+        if depth >= 4:
+            return omega_end, locked, signs
+        r0 = omega @ self._ring
+        r1 = omega_end @ self._ring
+        first, theta = -1, 2.0
+        for k in range(3):
+            if locked[k] or cap[k] <= _ENGAGED or signs[k] == 0.0:
+                continue
+            if r0[k] * signs[k] > 0.0 and r1[k] * signs[k] <= 0.0:
+                th = r0[k] / (r0[k] - r1[k])
+                if th < theta:
+                    first, theta = k, th
+        if first < 0:
+            return omega_end, locked, signs
+        t1 = max(theta * dt, 1e-9)
+        w_mid, locked, signs = self._advance(omega, t, t1, i_motor, cap, signs, locked,
+                                             depth + 1)
+        k = first
+        if self._can_lock(w_mid, t + t1, i_motor, cap, signs, locked, k):
+            locked = _with(locked, k, True)
+            w_mid = self._project(w_mid, locked)
+        else:
+            signs = signs.copy()
+            signs[k] = -signs[k]
+        rest = dt - t1
+        if rest <= 1e-12:
+            return w_mid, locked, signs
+        return self._advance(w_mid, t + t1, rest, i_motor, cap, signs, locked, depth + 1)
+
+    def simulate(self, t: ArrayLike, i_motor: ArrayLike, i_brake: ArrayLike,
+                 omega0: ArrayLike = (0.0, 0.0), state0: HybridState | None = None
+                 ) -> SimulationResult:
+        """Simulate over sample times ``t`` (N,) with inputs held between samples.
+
+        Args:
+            t: strictly increasing sample times [s], shape (N,).
+            i_motor: drive-motor current [A], shape (N,).
+            i_brake: brake-motor currents [A], shape (N, 3).
+            omega0: speeds at ``t[0]`` [rad/s], shape (2,) (ignored if ``state0`` given).
+
+        Returns:
+            Speeds etc. at each ``t`` (row 0 is the initial state).
+
+        Raises:
+            SimulationError: shapes, non-finite values or non-increasing time.
+        """
+        tt = np.asarray(t, dtype=float)
+        im = np.asarray(i_motor, dtype=float)
+        ib = np.asarray(i_brake, dtype=float)
+        n = tt.shape[0] if tt.ndim == 1 else -1
+        if tt.ndim != 1 or n < 1:
+            raise SimulationError(f"t: expected shape (N,), got {tt.shape}")
+        if im.shape != (n,):
+            raise SimulationError(f"i_motor: expected shape ({n},), got {im.shape}")
+        if ib.shape != (n, 3):
+            raise SimulationError(f"i_brake: expected shape ({n}, 3), got {ib.shape}")
+        for name, arr in (("t", tt), ("i_motor", im), ("i_brake", ib)):
+            bad = np.flatnonzero(~np.isfinite(arr.reshape(n, -1)).all(axis=1))
+            if bad.size:
+                raise SimulationError(f"{name}: non-finite value at sample {int(bad[0])}")
+        if n > 1 and np.any(np.diff(tt) <= 0.0):
+            k = int(np.flatnonzero(np.diff(tt) <= 0.0)[0])
+            raise SimulationError(f"t: not strictly increasing at sample {k + 1}")
+        state = state0 if state0 is not None else self.initial_state(omega0, t=float(tt[0]))
+        omega = np.empty((n, 2))
+        cap = np.empty((n, 3))
+        locked = np.zeros((n, 3), dtype=bool)
+        gear = np.zeros(n, dtype=np.int64)
+        for k in range(n):
+            omega[k] = state.omega
+            cap[k] = state.capacity
+            locked[k] = state.locked
+            gear[k] = state.gear
+            if k + 1 < n:
+                state = self.step(state, float(tt[k + 1] - tt[k]), float(im[k]), ib[k])
+        return SimulationResult(t=tt, omega=omega, capacity=cap, locked=locked, gear=gear)
+
+    def kinetic_energy(self, omega: ArrayLike) -> Array:
+        """``1/2 omega^T M omega`` [J] for shape (2,) or (N, 2)."""
+        w = np.asarray(omega, dtype=float)
+        return np.asarray(0.5 * np.einsum("...i,ij,...j->...", w, self.rigid.M, w))
+
+
+def _with(locked: LockSet, k: int, value: bool) -> LockSet:
+    items = list(locked)
+    items[k] = value
+    return (items[0], items[1], items[2])
+
+
+__all__ = ["HybridModel", "HybridState", "SimulationResult", "replace"]

@@ -1,0 +1,135 @@
+"""Shared node-layer helpers (rclpy): QoS profiles, JointState building, the spin loop.
+
+Not a core module: it imports rclpy. Topic names and QoS are the interface contract's
+(``../shared/INTERFACE.md``): high-rate streams use a sensor-data (best-effort) QoS with a
+deep queue so bursts are absorbed; a best-effort subscription matches both best-effort and
+reliable publishers.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from sensor_msgs.msg import JointState
+
+JOINT_STATES = "/dvt/joint_states"
+CURRENTS = "/dvt/currents"
+MODEL_JOINT_STATES = "/dvt/model/joint_states"
+MODEL_RESIDUAL = "/dvt/model/residual"
+DIAGNOSTICS = "/diagnostics"
+SPEED_NAMES = ("sun_shaft", "carrier3")
+CURRENT_NAMES = ("drive_motor", "brake1", "brake2", "brake3")
+
+SENSOR_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1000,
+    reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE,
+)
+"""High-rate streams (publishers and subscribers)."""
+
+COMMAND_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=10,
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+)
+"""Commands to the driver: every command counts."""
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    """``builtin_interfaces/Time`` -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> Time:
+    """Integer nanoseconds -> ``builtin_interfaces/Time``."""
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def joint_state(stamp_ns: int, names: Sequence[str], velocity: Iterable[float] | None = None,
+                effort: Iterable[float] | None = None, frame_id: str = "") -> JointState:
+    """A JointState with the given stamp; ``velocity``/``effort`` optional."""
+    msg = JointState()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.name = list(names)
+    if velocity is not None:
+        msg.velocity = [float(v) for v in velocity]
+    if effort is not None:
+        msg.effort = [float(v) for v in effort]
+    return msg
+
+
+def diagnostic(node: Node, name: str, level: int, message: str,
+               values: dict[str, Any]) -> DiagnosticArray:
+    """One-status DiagnosticArray stamped now; ``level`` is a DiagnosticStatus level byte."""
+    arr = DiagnosticArray()
+    arr.header.stamp = node.get_clock().now().to_msg()
+    st = DiagnosticStatus()
+    st.level = bytes([level]) if isinstance(level, int) else level
+    st.name = name
+    st.message = message
+    st.hardware_id = "dvt"
+    st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+    arr.status = [st]
+    return arr
+
+
+OK = 0
+WARN = 1
+ERROR = 2
+STALE = 3
+
+
+def spin(node: Node, *, events: bool = True) -> None:
+    """Spin ``node`` until SIGINT/SIGTERM; then destroy it and shut rclpy down.
+
+    Uses ``rclpy.experimental.EventsExecutor`` (cheap at 1 kHz) with bounded ``spin_once``
+    calls so signals are always honoured.
+    """
+    stop = {"flag": False}
+
+    def _handler(signum: int, frame: object) -> None:
+        stop["flag"] = True
+
+    signal.signal(signal.SIGTERM, _handler)
+    signal.signal(signal.SIGINT, _handler)
+    executor: Any
+    if events and os.environ.get("DVT_EXECUTOR", "events") == "events":
+        from rclpy.experimental import EventsExecutor
+
+        executor = EventsExecutor()
+    else:
+        from rclpy.executors import SingleThreadedExecutor
+
+        executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        while not stop["flag"] and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        on_shutdown = getattr(node, "on_shutdown_hook", None)
+        if callable(on_shutdown):
+            on_shutdown()
+        executor.remove_node(node)
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+def init(args: list[str] | None = None) -> list[str]:
+    """``rclpy.init`` without rclpy's own signal handlers; returns non-ROS args."""
+    argv = sys.argv if args is None else args
+    rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    return list(rclpy.utilities.remove_ros_args(argv))

@@ -1,0 +1,27 @@
+from setuptools import find_packages, setup
+
+package_name = 'dvt_model'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    package_data={package_name: ['params/*.yaml', 'py.typed']},
+    include_package_data=True,
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='dvt developers',
+    maintainer_email='dvt@example.com',
+    description='DVT physics core (kinematics, Lagrangian dynamics, band brake, hybrid simulation) and the live model node',
+    license='Apache-2.0',
+    extras_require={'test': ['pytest']},
+    entry_points={'console_scripts': [
+        'dvt-model = dvt_model.cli:main',
+        'dvt_model_node = dvt_model.node:main',
+        'dvt-replay = dvt_model.replay:main',
+    ]},
+)
