@@ -126,6 +126,7 @@ class HybridModel:
         self._ring = np.asarray(rigid.Q_brake, dtype=float)  # (2, 3) ring speed forms
         self._modes: dict[tuple[LockSet, float], _Mode] = {}
         self._bases: dict[LockSet, tuple[Array, Array, Array]] = {}
+        self._holding_maps: dict[LockSet, Array] = {}
 
     @classmethod
     def from_params(cls, params: TransmissionParams, extra_force: ExtraForce | None = None,
@@ -194,17 +195,18 @@ class HybridModel:
             omega: current speeds (admissible for ``locked``), shape (2,).
             f: generalised force of everything but the locked bands, shape (2,).
         """
-        out = np.zeros(3)
-        idx = [k for k in range(3) if locked[k]]
-        if not idx:
-            return out
-        N, Mr_inv, _ = self._basis(locked)
-        rhs = -self.rigid.D @ omega + f
-        acc = N @ (Mr_inv @ (N.T @ rhs)) if N.shape[1] else np.zeros(2)
-        C = self._ring[:, idx]
-        lam, *_ = np.linalg.lstsq(C, self.rigid.M @ acc - rhs, rcond=None)
-        out[idx] = lam
-        return out
+        if not any(locked):
+            return np.zeros(3)
+        L = self._holding_maps.get(locked)
+        if L is None:
+            idx = [k for k in range(3) if locked[k]]
+            N, Mr_inv, _ = self._basis(locked)
+            proj = N @ Mr_inv @ N.T if N.shape[1] else np.zeros((2, 2))
+            # lambda = pinv(C) (M N Mr^-1 N^T - I) rhs,  rhs = -D omega + f
+            L = np.zeros((3, 2))
+            L[idx] = np.linalg.pinv(self._ring[:, idx]) @ (self.rigid.M @ proj - np.eye(2))
+            self._holding_maps[locked] = L
+        return np.asarray(L @ (f - self.rigid.D @ omega))
 
     def _project(self, omega: Array, locked: LockSet) -> Array:
         N, Mr_inv, _ = self._basis(locked)

@@ -1,0 +1,156 @@
+"""``dvt-bench model``: feed the model node at a fixed rate and measure it.
+
+Starts ``dvt_model_node`` as its own process, publishes ``/dvt/joint_states`` and
+``/dvt/currents`` pairs at ``--rate`` Hz for ``--seconds`` from this process, listens to
+``/dvt/model/residual`` and prints JSON::
+
+    {"rate_hz", "sent", "received", "published", "dropped",
+     "latency_ms": {"p50", "p99"}, "cpu_percent"}
+
+``received``: samples the node processed (from its diagnostics); ``published``: residual
+messages that reached the bench; ``dropped = sent - published``; latency: publish of the
+measured sample to receipt of its residual (same machine clock); ``cpu_percent``: the node
+process's CPU time over the run (100 = one core). A benchmark, not a test: it prints what it
+measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / ticks
+
+
+def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]:
+    """Run the benchmark; returns the figures (see module docstring)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.context import Context
+    from rclpy.experimental import EventsExecutor
+    from sensor_msgs.msg import JointState
+
+    from dvt_model import rosutil
+
+    env = dict(os.environ)
+    env.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+    exe_path = Path(sys.executable).parent / "dvt_model_node"
+    proc = subprocess.Popen([str(exe_path), "--ros-args", "-p", f"params:={params}"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=int(env["ROS_DOMAIN_ID"]))
+    node = rclpy.create_node("dvt_bench_model", context=ctx)
+    sent_at: dict[int, float] = {}
+    latencies: list[float] = []
+    node_samples = {"n": 0}
+    lock = threading.Lock()
+
+    def on_residual(msg: JointState) -> None:
+        now = time.perf_counter()
+        key = rosutil.stamp_to_ns(msg.header.stamp)
+        with lock:
+            t0 = sent_at.pop(key, None)
+        if t0 is not None:
+            latencies.append(now - t0)
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            if st.name == "dvt_model":
+                for kv in st.values:
+                    if kv.key == "samples":
+                        node_samples["n"] = int(kv.value)
+
+    node.create_subscription(JointState, rosutil.MODEL_RESIDUAL, on_residual, rosutil.SENSOR_QOS)
+    node.create_subscription(DiagnosticArray, rosutil.DIAGNOSTICS, on_diag, 10)
+    pub_js = node.create_publisher(JointState, rosutil.JOINT_STATES, rosutil.SENSOR_QOS)
+    pub_cur = node.create_publisher(JointState, rosutil.CURRENTS, rosutil.SENSOR_QOS)
+    executor = EventsExecutor(context=ctx)
+    executor.add_node(node)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+    try:
+        deadline = time.monotonic() + 30.0
+        while (pub_js.get_subscription_count() < 1 or pub_cur.get_subscription_count() < 1
+               or node.count_publishers(rosutil.MODEL_RESIDUAL) < 1):
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError("dvt_model_node did not come up within 30 s")
+            time.sleep(0.05)
+        time.sleep(0.5)
+        n = int(rate * seconds)
+        period = 1.0 / rate
+        cpu0, wall0 = _cpu_seconds(proc.pid), time.monotonic()
+        start = time.perf_counter()
+        base_ns = time.time_ns()
+        for k in range(n):
+            due = start + k * period
+            delay = due - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            stamp = base_ns + int(k * period * 1e9)
+            t = k * period
+            i_m = 4.0 + 2.0 * np.sin(2 * np.pi * t)
+            js = rosutil.joint_state(stamp, rosutil.SPEED_NAMES, velocity=(100.0, 20.0))
+            cur = rosutil.joint_state(stamp, rosutil.CURRENT_NAMES, effort=(i_m, 0.0, 0.0, 0.0))
+            with lock:
+                sent_at[stamp] = time.perf_counter()
+            pub_js.publish(js)
+            pub_cur.publish(cur)
+        send_seconds = time.perf_counter() - start
+        time.sleep(1.5)
+        cpu1, wall1 = _cpu_seconds(proc.pid), time.monotonic()
+        lat = np.asarray(latencies) * 1e3
+        return {
+            "rate_hz": rate,
+            "achieved_send_rate_hz": n / send_seconds,
+            "sent": n,
+            "received": node_samples["n"],
+            "published": len(latencies),
+            "dropped": n - len(latencies),
+            "latency_ms": {"p50": float(np.percentile(lat, 50)) if lat.size else None,
+                           "p99": float(np.percentile(lat, 99)) if lat.size else None},
+            "cpu_percent": 100.0 * (cpu1 - cpu0) / (wall1 - wall0),
+        }
+    finally:
+        stop.set()
+        th.join(timeout=2.0)
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="dvt-bench model", description=__doc__.splitlines()[0])
+    parser.add_argument("--rate", type=float, default=1000.0)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--params", default="physical")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    out = run(args.rate, args.seconds, args.params)
+    print(json.dumps(out, indent=None if args.json else 2))
+    return 0
