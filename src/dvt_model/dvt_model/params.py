@@ -103,7 +103,7 @@ class TransmissionParams:
 
 def available_parameter_sets() -> list[str]:
     """Names of the bundled parameter sets."""
-    root = resources.files("dvt_model") / "params"
+    root = resources.files("dvt_model") / "param_sets"
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
 
 
@@ -118,7 +118,7 @@ def load_parameters(name_or_path: str | Path) -> TransmissionParams:
     candidate = Path(name_or_path)
     if isinstance(name_or_path, str) and name_or_path in available_parameter_sets():
         source = f"{name_or_path}.yaml"
-        text = (resources.files("dvt_model") / "params" / source).read_text(encoding="utf-8")
+        text = (resources.files("dvt_model") / "param_sets" / source).read_text(encoding="utf-8")
     elif candidate.suffix in (".yaml", ".yml") or candidate.exists():
         source = str(candidate)
         try:

@@ -18,7 +18,7 @@ def test_bundled_sets():
 
 def _base():
     from importlib import resources
-    text = (resources.files("dvt_model") / "params" / "thesis.yaml").read_text()
+    text = (resources.files("dvt_model") / "param_sets" / "thesis.yaml").read_text()
     return yaml.safe_load(text)
 
 
