@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dvt_model import bagio
 from dvt_model.bagio import (
@@ -275,3 +277,49 @@ def test_topic_series_missing_topic(tmp_path: Path) -> None:
     path = bagio.write_run(tmp_path / "run", stamps, speeds, currents)
     with pytest.raises(BagError, match="topic /dvt/model/residual missing"):
         bagio.read_topic_series(path, bagio.MODEL_RESIDUAL_TOPIC)
+
+
+_names = st.lists(st.text(max_size=6), max_size=4)
+_floats = st.lists(st.floats(allow_nan=False), max_size=5)
+
+
+@settings(max_examples=150, deadline=None)
+@given(stamp=st.integers(-(2**31) * 10**9, 2**31 * 10**9 - 1), names=_names, pos=_floats, vel=_floats, eff=_floats)
+def test_fast_cdr_matches_rosbags(stamp: int, names: list[str], pos: list[float],
+                                  vel: list[float], eff: list[float]) -> None:
+    ts = bagio.typestore()
+    raw = bagio.joint_state_cdr(stamp, names, position=pos, velocity=vel, effort=eff)
+    reference = bytes(ts.serialize_cdr(
+        bagio.joint_state(stamp, names, position=pos, velocity=vel, effort=eff),
+        JOINT_STATE_TYPE))
+    assert raw == reference
+    back = bagio._parse_joint_state(raw + b"\x00\x00\x00\x00")  # rclpy may add 4 bytes
+    assert back.stamp_ns == stamp
+    assert back.names == tuple(names)
+    for got, want in ((back.position, pos), (back.velocity, vel), (back.effort, eff)):
+        np.testing.assert_array_equal(got, np.asarray(want, dtype=float))
+
+
+def test_stamp_out_of_range() -> None:
+    with pytest.raises(BagError, match="does not fit builtin_interfaces/Time"):
+        bagio.joint_state_cdr(2**31 * 10**9, SPEED_NAMES)
+
+
+def test_big_endian_cdr_falls_back_to_rosbags() -> None:
+    raw = bytearray(bagio.joint_state_cdr(T0, SPEED_NAMES, velocity=[1.0, 2.0]))
+    # a big-endian encoding of the same message, as another DDS vendor might produce
+    ts = bagio.typestore()
+    msg = ts.deserialize_cdr(bytes(raw), JOINT_STATE_TYPE)
+    be = bytes(ts.serialize_cdr(msg, JOINT_STATE_TYPE, little_endian=False))
+    back = bagio._parse_joint_state(be)
+    assert back.names == SPEED_NAMES and list(back.velocity) == [1.0, 2.0]
+    assert back.stamp_ns == T0
+
+
+def test_garbage_message_is_reported(tmp_path: Path) -> None:
+    stamps, speeds, currents = _data(3)
+    js = _js(stamps, SPEED_NAMES, "velocity", speeds)
+    js[1] = (int(stamps[1]), b"\x00\x01\x00\x00\xff\xff")
+    path = _bag(tmp_path, js, _js(stamps, CURRENT_NAMES, "effort", currents))
+    with pytest.raises(BagError, match="/dvt/joint_states: message 1 is not a valid"):
+        bagio.read_run(path)
