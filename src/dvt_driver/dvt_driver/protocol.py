@@ -118,7 +118,7 @@ class Status(IntFlag):
     BRAKE1 = 1 << 4  #: band brake 1 engaged
     BRAKE2 = 1 << 5  #: band brake 2 engaged
     BRAKE3 = 1 << 6  #: band brake 3 engaged
-    FAULT = 1 << 7  #: fault latched: motor off, brakes released, until a COMMAND with mode OFF
+    FAULT = 1 << 7  #: fault latched: motor off, brakes hold, until a COMMAND with mode OFF
 
 
 _STATUS_MASK = 0xFF
