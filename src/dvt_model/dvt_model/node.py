@@ -14,6 +14,9 @@ combination is refused with a reason and the node keeps its current model):
 - ``motor_constant`` (double, 0 = the set's value) [N m/A].
 - ``A``, ``B`` (double[4] and double[4] or double[8], default empty): run the linear model
   ``omega' = A omega + B u`` instead of the hybrid physics (both must be given).
+- ``effects`` (string, JSON list, default empty): identified effect terms
+  (:mod:`dvt_model.terms`: Coulomb, Stribeck, windage, viscous force terms on a member;
+  output delay and gain), pushed by the identifier node.
 - ``mode`` (``simulate`` | ``reanchor``), ``reanchor_period`` [s], ``gap_reset`` [s]:
   see :mod:`dvt_model.predictor`.
 """
@@ -41,9 +44,10 @@ from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel, check_matrix
 from dvt_model.params import load_parameters
 from dvt_model.predictor import Predictor
+from dvt_model.terms import parse_terms
 
-_PARAMS = ("params", "M", "D", "motor_constant", "A", "B", "mode", "reanchor_period",
-           "gap_reset")
+_PARAMS = ("params", "M", "D", "motor_constant", "A", "B", "effects", "mode",
+           "reanchor_period", "gap_reset")
 
 
 def build_predictor(values: dict[str, Any]) -> tuple[Predictor, str]:
@@ -77,12 +81,19 @@ def build_predictor(values: dict[str, Any]) -> tuple[Predictor, str]:
         B = check_matrix(np.asarray(b_raw, dtype=float), "B", (len(b_raw),)).reshape(2, -1)
         model = LinearModel(A, B)
         desc = f"linear A,B (2x{B.shape[1]})"
-    else:
-        model = HybridModel(rigid, params.brake)
+    terms = parse_terms(str(values.get("effects") or ""))
+    if (a_raw or b_raw) and terms.forces:
+        raise ModelError("effects: force terms need the physical model (clear A and B)")
+    if not (a_raw or b_raw):
+        model = HybridModel(rigid, params.brake,
+                            extra_force=terms.extra_force if terms.forces else None)
         desc = f"hybrid physics '{params.name}'" + (f" with {sorted(changes)}" if changes else "")
+    if not terms.empty:
+        desc += f" + {len(terms.forces)} force term(s), delay {terms.delay:g} s"
     predictor = Predictor(model, params.brake, mode=mode,  # type: ignore[arg-type]
                           reanchor_period=float(values.get("reanchor_period", 1.0)),
-                          gap_reset=float(values.get("gap_reset", 0.5)))
+                          gap_reset=float(values.get("gap_reset", 0.5)),
+                          output_delay=terms.delay, output_gain=terms.gains)
     return predictor, desc
 
 
@@ -108,6 +119,8 @@ class ModelNode(Node):
         self.declare_parameter("B", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE_ARRAY,
             description="identified input matrix, 4 (2x2) or 8 (2x4) values row-major"))
+        self.declare_parameter("effects", "", ParameterDescriptor(
+            description="identified effect terms, JSON list (see dvt_model.terms)"))
         self.declare_parameter("mode", "simulate", ParameterDescriptor(
             description="simulate (free run, output-error residual) or reanchor"))
         self.declare_parameter("reanchor_period", 1.0, ParameterDescriptor(

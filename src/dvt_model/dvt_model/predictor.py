@@ -63,7 +63,9 @@ class Predictor:
 
     def __init__(self, model: HybridModel | LinearModel, brake: BrakeParams,
                  mode: Mode = "simulate", reanchor_period: float = 1.0,
-                 gap_reset: float = 0.5, rms_window: int = 1000) -> None:
+                 gap_reset: float = 0.5, rms_window: int = 1000,
+                 output_delay: float = 0.0, output_gain: tuple[float, float] = (0.0, 0.0)
+                 ) -> None:
         if mode not in ("simulate", "reanchor"):
             raise SimulationError(f"mode: expected 'simulate' or 'reanchor', got {mode!r}")
         if not reanchor_period > 0.0:
@@ -73,6 +75,9 @@ class Predictor:
         self.mode: Mode = mode
         self.reanchor_period = reanchor_period
         self.gap_reset = gap_reset
+        self.output_delay = float(output_delay)
+        self.output_gain = np.asarray(output_gain, dtype=float) + 1.0
+        self._history: deque[tuple[float, Array]] = deque()
         self._state: HybridState | None = None
         self._omega = np.zeros(2)
         self._cap = np.zeros(3)
@@ -141,6 +146,16 @@ class Predictor:
         else:
             predicted = self._omega.copy()
             gear = 0
+        if anchored:
+            self._history.clear()
+        if self.output_delay > 0.0:
+            # measured output at t is the machine's state at t - delay (sensor delay)
+            self._history.append((stamp, predicted))
+            while (len(self._history) > 1
+                   and self._history[1][0] <= stamp - self.output_delay + 1e-9):
+                self._history.popleft()
+            predicted = self._history[0][1].copy()
+        predicted = predicted * self.output_gain
         self._last_stamp = stamp
         self._last_inputs = (float(i_motor), ib)
         residual = meas - predicted
