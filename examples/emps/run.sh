@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# EMPS real-data example: import both EMPS records into rosbag2/MCAP bags, then identify
+# (estimate on emps_estimation, validate on emps_validation) and write the report.
+#
+#   examples/emps/run.sh OUTDIR
+#
+# EMPS_DIR overrides where the data are (default: ../shared/data/emps relative to the repository
+# root). Nothing from the data folder is copied into the repository; bags and report go to OUTDIR.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+root="$(cd "$here/../.." && pwd)"
+if [ $# -ne 1 ]; then
+  echo "usage: $0 OUTDIR" >&2
+  exit 2
+fi
+out="$1"
+emps="${EMPS_DIR:-$root/../shared/data/emps}"
+for f in emps_estimation.npz emps_validation.npz; do
+  if [ ! -f "$emps/$f" ]; then
+    echo "run.sh: error: $emps/$f not found (set EMPS_DIR to the folder with the EMPS records)" >&2
+    exit 2
+  fi
+done
+"$root/scripts/bootstrap.sh"
+bin="$root/.venv/bin"
+mkdir -p "$out"
+for rec in estimation validation; do
+  # Force on the load F = gtau * vir [N] (vir in V already contains the validation pulses:
+  # never add pulses_N again); load velocity = zero-phase 4th-order Butterworth (100 Hz) on the
+  # encoder position qm, then central differences.
+  "$bin/dvt-import" "$emps/emps_$rec.npz" --out "$out/bags/emps_$rec" --force \
+    --time t --derivative-cutoff 100 --derivative-order 4 \
+    --signal /emps/joint_states carriage position qm \
+    --signal /emps/joint_states carriage velocity "d(qm)" \
+    --signal /emps/drive carriage effort "vir * gtau"
+done
+"$bin/dvt-identify" "$out/bags/emps_estimation" --validate "$out/bags/emps_validation" \
+  --description emps --out "$out"
+echo "report: $out/report.md ($out/report.json)" >&2

@@ -1,0 +1,296 @@
+"""Actuator descriptions: which bag signals are inputs/outputs, the model structure, candidates.
+
+A description is a YAML file (see ``descriptions/emps.yaml`` for a complete example)::
+
+    name: emps
+    inputs:  [{name: force, topic: /emps/drive, field: effort, joint: carriage,
+               scale: 1.0, saturation: [-351.5, 351.5]}]
+    outputs: [{name: carriage, topic: /emps/joint_states, field: velocity, joint: carriage}]
+    structure:
+      type: mechanical            # or state_space, or python
+      mass: [[M]]                 # entries: numbers or [-][coef*]parameter
+      damping: [[Fv]]
+      input_matrix: [[1.0]]
+      force_unit: N
+      speed_unit: m/s
+      parameters: {M: {initial: 100, lower: 0.001, unit: kg}, Fv: {initial: 200, lower: 0}}
+    candidates:
+      - {effect: coulomb_friction, where: carriage, offset: true}
+    preprocess: {lowpass: null, decimate: 1, fit_decimate: 1}
+    checks: {min_samples: 200, max_gap_samples: 3, max_saturated_fraction: 0.01}
+    fit: {starts: 4, refit_starts: 2, alpha: 0.01, min_validation_gain: 0.1, max_effects: 4,
+          max_tries_per_round: 3, seed: 0}
+    notes: ["free text carried into the report"]
+
+Structure types:
+
+- ``state_space``: ``A`` (nx, nx), ``B`` (nx, nu), optional ``force_map`` (nx, nx, default I).
+- ``mechanical``: ``mass``, ``damping``, ``input_matrix``; ``A = -M^-1 D``, ``B = M^-1 Q``,
+  ``F = M^-1``.
+- ``python``: ``class: "package.module:Class"`` and ``options``; the class is called as
+  ``Class(state_names=..., input_names=..., **options)`` and must satisfy
+  :class:`dvt_identify.oe.ModelStructure`.
+
+The states are the outputs, in order (C = I). ``load_description`` takes a file path or the name of
+a bundled description (``descriptions/<name>.yaml``); the default name is ``dvt``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.resources
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from dvt_identify.data import Checks, SignalSpec
+from dvt_identify.effects import VOCABULARY, Effect, make_effect
+from dvt_identify.errors import DescriptionError
+from dvt_identify.oe import MechanicalStructure, ModelStructure, StateSpaceStructure
+
+DEFAULT_DESCRIPTION = "dvt"
+
+
+@dataclass(frozen=True)
+class Preprocess:
+    """Pre-processing of every bag.
+
+    Attributes:
+        lowpass: ``{cutoff_hz, order, zero_phase}`` or ``None``.
+        decimate: decimation of all data (estimation and validation).
+        fit_decimate: further decimation of the estimation data for fitting and scoring only;
+            figures are computed at the full rate.
+    """
+
+    lowpass: dict[str, Any] | None = None
+    decimate: int = 1
+    fit_decimate: int = 1
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of the fit and the augment loop (see :class:`dvt_identify.loop.LoopConfig`)."""
+
+    starts: int = 4
+    refit_starts: int = 2
+    alpha: float = 0.01
+    min_validation_gain: float = 0.1
+    max_effects: int = 4
+    max_tries_per_round: int = 3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class CandidateSpec:
+    """One candidate entry: effect name, where, explicit member vector and options."""
+
+    effect: str
+    where: str
+    member: tuple[float, ...] | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Description:
+    """A loaded actuator description (see module docstring)."""
+
+    name: str
+    source: str
+    inputs: tuple[SignalSpec, ...]
+    outputs: tuple[SignalSpec, ...]
+    structure: ModelStructure
+    candidates: tuple[CandidateSpec, ...]
+    preprocess: Preprocess
+    checks: Checks
+    fit: FitOptions
+    notes: tuple[str, ...] = ()
+    text: str = ""
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Input names in order."""
+        return tuple(s.name for s in self.inputs)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        """Output (state) names in order."""
+        return tuple(s.name for s in self.outputs)
+
+    def make_candidates(self) -> list[Effect]:
+        """Build the candidate effects (parameter names get ``_<where>`` when an effect appears
+        more than once)."""
+        counts = Counter(c.effect for c in self.candidates)
+        out = []
+        for c in self.candidates:
+            suffix = f"_{c.where}" if counts[c.effect] > 1 else ""
+            out.append(make_effect(c.effect, c.where, self.output_names, self.input_names,
+                                   force_unit=self.structure.force_unit,
+                                   speed_unit=self.structure.speed_unit,
+                                   member=c.member, options=c.options, suffix=suffix))
+        return out
+
+
+def available_descriptions() -> list[str]:
+    """Names of the descriptions bundled with the package."""
+    root = importlib.resources.files("dvt_identify") / "descriptions"
+    try:
+        return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
+def _req(d: dict[str, Any], key: str, where: str) -> Any:
+    if key not in d:
+        raise DescriptionError(f"{where}: missing key {key!r}")
+    return d[key]
+
+
+def _signals(raw: Any, where: str) -> tuple[SignalSpec, ...]:
+    if not isinstance(raw, list) or not raw:
+        raise DescriptionError(f"{where}: expected a non-empty list of signals")
+    out = []
+    for i, s in enumerate(raw):
+        w = f"{where}[{i}]"
+        if not isinstance(s, dict):
+            raise DescriptionError(f"{w}: expected a mapping, got {s!r}")
+        sat = s.get("saturation")
+        if sat is not None and (not isinstance(sat, list) or len(sat) != 2):
+            raise DescriptionError(f"{w}.saturation: expected [low, high], got {sat!r}")
+        field_ = str(_req(s, "field", w))
+        if field_ not in ("position", "velocity", "effort"):
+            raise DescriptionError(f"{w}.field: expected position, velocity or effort, "
+                                   f"got {field_!r}")
+        try:
+            out.append(SignalSpec(name=str(_req(s, "name", w)), topic=str(_req(s, "topic", w)),
+                                  field=field_, joint=str(_req(s, "joint", w)),
+                                  scale=float(s.get("scale", 1.0)),
+                                  saturation=None if sat is None else (float(sat[0]),
+                                                                       float(sat[1]))))
+        except (TypeError, ValueError) as exc:
+            raise DescriptionError(f"{w}: {exc}") from exc
+    names = [s.name for s in out]
+    if len(set(names)) != len(names):
+        raise DescriptionError(f"{where}: duplicate names {names}")
+    return tuple(out)
+
+
+def _structure(raw: Any, states: tuple[str, ...], inputs: tuple[str, ...],
+               where: str) -> ModelStructure:
+    if not isinstance(raw, dict):
+        raise DescriptionError(f"{where}: expected a mapping")
+    kind = raw.get("type")
+    params = raw.get("parameters", {}) or {}
+    if not isinstance(params, dict):
+        raise DescriptionError(f"{where}.parameters: expected a mapping")
+    fu, su = str(raw.get("force_unit", "")), str(raw.get("speed_unit", ""))
+    if kind == "state_space":
+        return StateSpaceStructure(states, inputs, _req(raw, "A", where), _req(raw, "B", where),
+                                   params, raw.get("force_map"), fu, su, what=where)
+    if kind == "mechanical":
+        return MechanicalStructure(states, inputs, _req(raw, "mass", where),
+                                   _req(raw, "damping", where), _req(raw, "input_matrix", where),
+                                   params, fu, su, what=where)
+    if kind == "python":
+        target = str(_req(raw, "class", where))
+        mod_name, _, cls_name = target.partition(":")
+        try:
+            cls = getattr(importlib.import_module(mod_name), cls_name)
+        except (ImportError, AttributeError) as exc:
+            raise DescriptionError(f"{where}.class: cannot import {target!r}: {exc}") from exc
+        obj = cls(state_names=states, input_names=inputs, **(raw.get("options") or {}))
+        if not isinstance(obj, ModelStructure):
+            raise DescriptionError(f"{where}.class: {target} does not implement ModelStructure")
+        if tuple(obj.state_names) != states or tuple(obj.input_names) != inputs:
+            raise DescriptionError(f"{where}.class: {target} names states {obj.state_names} and "
+                                   f"inputs {obj.input_names}; the description has {states} and "
+                                   f"{inputs}")
+        return obj
+    raise DescriptionError(f"{where}.type: expected state_space, mechanical or python, "
+                           f"got {kind!r}")
+
+
+def _candidates(raw: Any, states: tuple[str, ...], where: str) -> tuple[CandidateSpec, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise DescriptionError(f"{where}: expected a list")
+    out = []
+    for i, c in enumerate(raw):
+        w = f"{where}[{i}]"
+        if not isinstance(c, dict):
+            raise DescriptionError(f"{w}: expected a mapping, got {c!r}")
+        eff = str(_req(c, "effect", w))
+        if eff not in VOCABULARY or eff == "none":
+            raise DescriptionError(f"{w}.effect: {eff!r} is not a candidate effect (known: "
+                                   f"{', '.join(VOCABULARY)})")
+        member = c.get("member")
+        mv: tuple[float, ...] | None = None
+        if isinstance(member, dict):
+            unknown = set(member) - set(states)
+            if unknown:
+                raise DescriptionError(f"{w}.member: unknown states {sorted(unknown)}")
+            mv = tuple(float(member.get(s, 0.0)) for s in states)
+        elif isinstance(member, list):
+            mv = tuple(float(v) for v in member)
+        opts = {k: v for k, v in c.items() if k not in ("effect", "where", "member")}
+        out.append(CandidateSpec(effect=eff, where=str(_req(c, "where", w)), member=mv,
+                                 options=opts))
+    return tuple(out)
+
+
+def parse_description(data: Any, source: str, text: str = "") -> Description:
+    """Build a :class:`Description` from parsed YAML ``data``; errors name ``source``."""
+    if not isinstance(data, dict):
+        raise DescriptionError(f"{source}: expected a mapping at the top level")
+    inputs = _signals(_req(data, "inputs", source), f"{source}: inputs")
+    outputs = _signals(_req(data, "outputs", source), f"{source}: outputs")
+    states = tuple(s.name for s in outputs)
+    structure = _structure(_req(data, "structure", source), states,
+                           tuple(s.name for s in inputs), f"{source}: structure")
+    cands = _candidates(data.get("candidates"), states, f"{source}: candidates")
+    pre = data.get("preprocess") or {}
+    chk = data.get("checks") or {}
+    fit = data.get("fit") or {}
+    try:
+        preprocess = Preprocess(lowpass=pre.get("lowpass"), decimate=int(pre.get("decimate", 1)),
+                                fit_decimate=int(pre.get("fit_decimate", 1)))
+        checks = Checks(**{k: type(getattr(Checks(), k))(v) for k, v in chk.items()})
+        fopts = FitOptions(**{k: type(getattr(FitOptions(), k))(v) for k, v in fit.items()})
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise DescriptionError(f"{source}: preprocess/checks/fit: {exc}") from exc
+    desc = Description(name=str(data.get("name", Path(source).stem)), source=source,
+                       inputs=inputs, outputs=outputs, structure=structure, candidates=cands,
+                       preprocess=preprocess, checks=checks, fit=fopts,
+                       notes=tuple(str(n) for n in data.get("notes", []) or []), text=text)
+    desc.make_candidates()  # validate names and options now
+    return desc
+
+
+def load_description(spec: str | Path | None = None) -> Description:
+    """Load a description from a file path or a bundled name (default ``dvt``).
+
+    Raises:
+        DescriptionError: file not found / not YAML / invalid, naming the file and key.
+    """
+    spec = DEFAULT_DESCRIPTION if spec is None else spec
+    path = Path(spec)
+    if path.is_file():
+        text = path.read_text()
+        source = str(path)
+    else:
+        name = str(spec)
+        res = importlib.resources.files("dvt_identify") / "descriptions" / f"{name}.yaml"
+        if not res.is_file():
+            raise DescriptionError(f"description {name!r}: no such file and no bundled "
+                                   f"description of that name (bundled: "
+                                   f"{', '.join(available_descriptions()) or 'none'})")
+        text = res.read_text()
+        source = f"{name} (bundled)"
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise DescriptionError(f"{source}: not valid YAML: {exc}") from exc
+    return parse_description(data, source, text)

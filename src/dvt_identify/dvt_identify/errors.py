@@ -1,0 +1,32 @@
+"""Errors raised by the dvt_identify core.
+
+Every error names what was wrong (bag, topic, field, file, column, value) so that a user can fix
+the input without reading the code. The command-line tools print the message on one line and exit
+with a non-zero status.
+"""
+
+from __future__ import annotations
+
+
+class DvtIdentifyError(Exception):
+    """Base class of every error raised by :mod:`dvt_identify`."""
+
+
+class DataError(DvtIdentifyError, ValueError):
+    """A recording cannot be used for identification.
+
+    The message names the bag, the topic (and field/joint) and the problem: unreadable bag,
+    missing topic, non-monotonic stamps, gaps, NaN, saturation, too little data, no excitation.
+    """
+
+
+class DescriptionError(DvtIdentifyError, ValueError):
+    """An actuator description (YAML file) is invalid; the message names the file and key."""
+
+
+class ImportDataError(DvtIdentifyError, ValueError):
+    """Columns given to ``dvt-import`` are unusable (missing column, NaN, time not increasing)."""
+
+
+class FitError(DvtIdentifyError, RuntimeError):
+    """A fit could not be carried out (bad shapes, simulation diverged, no finite start)."""

@@ -1,0 +1,593 @@
+"""The identification loop: baseline OE fit, candidate scoring, augmentation with tests.
+
+1. **Baseline**: fit the description's linear structure (output error, multi-start) on the
+   estimation data.
+2. **Score** every remaining candidate against the estimation residual. A candidate's regressors are
+   the output sensitivities to its gain parameters at their null values (finite differences of the
+   full simulation: exactly the Jacobian columns it would add). Regressors and residual are
+   projected onto the orthogonal complement of the current model's Jacobian (all its parameters
+   and initial states), so only what the model cannot already explain counts. Evidence: the
+   fraction ``R^2`` of the residual sum of squares the projected regressors explain (the rank
+   key), the Lagrange-multiplier statistic ``LM = m R^2`` (m stacked residuals) with its chi2
+   p-value, the raw correlation before projection, the implied gain, a delay scan
+   (``measurement_delay``) and the residual's order spectrum (``periodic_disturbance``).
+3. **Augment**: add the strongest significant candidate (LM p < alpha), refit the whole nonlinear
+   OE model from the current optimum, and accept it only if (a) the likelihood-ratio test on the
+   estimation data passes (``LR = N sum_j log(mse_j,old / mse_j,new) > chi2_{1-alpha}(k)``, an
+   unknown noise variance per output), (b) BIC decreases (``LR > k log N``), and (c) the mean
+   validation fit improves by at least ``min_validation_gain`` points. Up to
+   ``max_tries_per_round`` significant candidates are refitted per round, strongest score first;
+   of those that pass, the one with the largest LR is accepted (a local score can misjudge a large
+   effect, the refit cannot). Repeat until a round accepts nothing.
+
+With coloured residuals LM and LR overstate significance (they assume white errors), which is why
+acceptance also needs the validation improvement.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+from scipy.optimize import lsq_linear
+
+from dvt_identify.data import Segment, decimate
+from dvt_identify.description import Description, FitOptions
+from dvt_identify.effects import Effect, MeasurementDelay, PeriodicDisturbance, SegmentView
+from dvt_identify.errors import DataError, FitError
+from dvt_identify.metrics import Figures, figures
+from dvt_identify.oe import OEFit, OEModel, Progress
+from dvt_identify.resid import OutputResidual, Spectrum, residual_analysis, residual_spectrum
+
+Array = NDArray[np.float64]
+ABSORBED = 0.02  # a regressor with less than 2 % of its norm outside the model's span is absorbed
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Options of :func:`identify`.
+
+    Attributes:
+        starts: starts of the baseline fit.
+        refit_starts: starts of each candidate refit (the first from the current optimum plus
+            the candidate's implied gain).
+        alpha: significance level of the LM screen and the LR test.
+        min_validation_gain: required improvement of the mean validation fit [% points].
+        max_effects: most effects accepted.
+        max_tries_per_round: candidates refitted per round before giving up.
+        augment: run the augment loop (False: baseline only).
+        lags: residual-analysis lags.
+        seed: random seed of the multi-start perturbations.
+        fit_decimate: decimation of the estimation data for fitting/scoring.
+    """
+
+    starts: int = 4
+    refit_starts: int = 2
+    alpha: float = 0.01
+    min_validation_gain: float = 0.1
+    max_effects: int = 4
+    max_tries_per_round: int = 3
+    augment: bool = True
+    lags: int = 25
+    seed: int = 0
+    fit_decimate: int = 1
+
+    @classmethod
+    def from_options(cls, opts: FitOptions, fit_decimate: int = 1, **overrides: object
+                     ) -> LoopConfig:
+        """Config from a description's ``fit`` section plus overrides."""
+        base = cls(starts=opts.starts, refit_starts=opts.refit_starts, alpha=opts.alpha,
+                   min_validation_gain=opts.min_validation_gain, max_effects=opts.max_effects,
+                   max_tries_per_round=opts.max_tries_per_round, seed=opts.seed,
+                   fit_decimate=fit_decimate)
+        return replace(base, **overrides)  # type: ignore[arg-type]
+
+
+@dataclass
+class Stage:
+    """A fitted model with its figures on estimation (full rate) and validation data.
+
+    Attributes:
+        label: ``baseline`` or ``+effect@where``.
+        fit: the :class:`OEFit`.
+        est, val: :class:`Figures` on estimation / validation data.
+        est_pred, val_pred: simulated outputs per segment.
+        val_x0: estimated initial states of the validation segments.
+        resid_est, resid_val: residual analyses.
+        spectrum_val: residual spectrum of each output on validation data.
+    """
+
+    label: str
+    fit: OEFit
+    est: Figures
+    val: Figures
+    est_pred: list[Array]
+    val_pred: list[Array]
+    val_x0: list[Array]
+    resid_est: list[OutputResidual]
+    resid_val: list[OutputResidual]
+    spectrum_val: list[Spectrum]
+
+    @property
+    def effects(self) -> tuple[Effect, ...]:
+        """Effects in the model."""
+        return self.fit.model.effects
+
+    def parameters(self) -> dict[str, float]:
+        """Physical parameters by name."""
+        return self.fit.parameters()
+
+    def linear(self) -> tuple[Array, Array]:
+        """``A``, ``B`` of the linear part."""
+        A, B, _ = self.fit.model.structure.matrices(self.fit.theta_[: self.fit.model.n_struct])
+        return A, B
+
+
+@dataclass
+class CandidateScore:
+    """Score of one candidate against a model's residual (see module docstring).
+
+    Attributes:
+        effect: the candidate with initial values set from the score (implied gains, best
+            shape variant) for the refit.
+        r2: fraction of the residual sum of squares explained after projection (rank key).
+        r2_raw: the same without projection.
+        lm, dof, p_value: Lagrange-multiplier statistic, its degrees of freedom and p-value.
+        corr: signed correlation (single regressor) or multiple correlation after projection.
+        corr_raw: the same before projection.
+        variant: chosen shape variant; variants: every variant's r2.
+        extra: delay scan, order spectrum, ...
+    """
+
+    effect: Effect
+    r2: float
+    r2_raw: float
+    lm: float
+    dof: int
+    p_value: float
+    corr: float
+    corr_raw: float
+    variant: str
+    variants: list[dict[str, object]]
+    implied: dict[str, float]
+    extra: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """``name@where``."""
+        return self.effect.label()
+
+    def evidence(self) -> dict[str, object]:
+        """JSON-ready evidence."""
+        out: dict[str, object] = {
+            "r2_projected": self.r2, "r2_raw": self.r2_raw,
+            "predicted_sse_reduction_percent": 100.0 * self.r2,
+            "lm_statistic": self.lm, "dof": self.dof, "p_value": self.p_value,
+            "correlation_projected": self.corr, "correlation_raw": self.corr_raw,
+            "implied_parameters": self.implied,
+        }
+        if self.variant:
+            out["variant"] = self.variant
+            out["variants"] = self.variants
+        out.update(self.extra)
+        return out
+
+
+@dataclass
+class Decision:
+    """Outcome of one candidate refit.
+
+    Attributes:
+        round: 1-based round.
+        score: the score that put the candidate forward.
+        accepted: whether it was added.
+        reason: plain-text reason.
+        lr, lr_threshold, dof: likelihood-ratio statistic, chi2 threshold, added parameters.
+        delta_bic: BIC(new) - BIC(old) on the estimation (fit) data.
+        val_fit_before, val_fit_after: mean validation fit [%].
+        stage: the refitted model (``None`` if the refit failed).
+    """
+
+    round: int
+    score: CandidateScore
+    accepted: bool
+    reason: str
+    lr: float = math.nan
+    lr_threshold: float = math.nan
+    dof: int = 0
+    delta_bic: float = math.nan
+    val_fit_before: float = math.nan
+    val_fit_after: float = math.nan
+    stage: Stage | None = None
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready summary."""
+        return {"round": self.round, "candidate": self.score.label, "accepted": self.accepted,
+                "reason": self.reason, "lr": self.lr, "lr_threshold": self.lr_threshold,
+                "dof": self.dof, "delta_bic": self.delta_bic,
+                "validation_fit_before": self.val_fit_before,
+                "validation_fit_after": self.val_fit_after}
+
+
+@dataclass
+class IdentificationResult:
+    """Everything the report needs."""
+
+    description: Description
+    estimation_bags: list[str]
+    validation_bags: list[str]
+    baseline: Stage
+    final: Stage
+    rounds: list[list[CandidateScore]]
+    decisions: list[Decision]
+    config: LoopConfig
+    seconds: float
+    fit_dt: float
+    notes: list[str]
+    val_segments: list[Segment] = field(default_factory=list)
+
+    @property
+    def accepted(self) -> list[Decision]:
+        """Accepted decisions in order."""
+        return [d for d in self.decisions if d.accepted]
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _seg_losses(fit: OEFit, segments: Sequence[Segment]) -> tuple[Array, int, int]:
+    """Mean squared weighted residual per output (ny,), N, ny.
+
+    The decisions use the Gaussian likelihood with an unknown variance per output and
+    independent outputs, ``-2 log L = N sum_j log(mse_j) + const``, which is consistent with the
+    weighted least-squares fit (for one output it equals MATLAB's ``N log det``)."""
+    ny = segments[0].y.shape[1]
+    e = fit.residual_.reshape(-1, ny)
+    return np.mean(e ** 2, axis=0), e.shape[0], ny
+
+
+def make_stage(label: str, fit: OEFit, est: Sequence[Segment], val: Sequence[Segment],
+               same_rate: bool, lags: int = 25) -> Stage:
+    """Evaluate ``fit`` on the full-rate estimation and the validation segments."""
+    m = fit.model
+    est_x0 = fit.x0_ if same_rate else [fit.estimate_x0(s) for s in est]
+    est_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(est, est_x0, strict=True)]
+    val_x0 = [fit.estimate_x0(s) for s in val]
+    val_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(val, val_x0, strict=True)]
+    names = est[0].output_names
+    inames = est[0].input_names
+    k = fit.n_estimated_
+    fe = figures([s.y for s in est], est_pred, k, names)
+    fv = figures([s.y for s in val], val_pred, k, names)
+    re = residual_analysis([s.y - p for s, p in zip(est, est_pred, strict=True)],
+                           [s.u for s in est], names, inames, lags)
+    rv = residual_analysis([s.y - p for s, p in zip(val, val_pred, strict=True)],
+                           [s.u for s in val], names, inames, lags)
+    sp = [residual_spectrum([(s.y - p)[:, j] for s, p in zip(val, val_pred, strict=True)],
+                            val[0].dt) for j in range(len(names))]
+    return Stage(label=label, fit=fit, est=fe, val=fv, est_pred=est_pred, val_pred=val_pred,
+                 val_x0=val_x0, resid_est=re, resid_val=rv, spectrum_val=sp)
+
+
+def _candidate_theta(fit: OEFit, cand: Effect, values: Array) -> tuple[OEModel, Array]:
+    model = OEModel(fit.model.structure, (*fit.model.effects, cand))
+    return model, np.concatenate([fit.theta_, values])
+
+
+def _column(model: OEModel, theta: Array, segments: Sequence[Segment], x0s: Sequence[Array],
+            base: Sequence[Array], w: Array, idx: int, h: float) -> Array:
+    th = theta.copy()
+    th[idx] += h
+    parts = []
+    for seg, x0, y0 in zip(segments, x0s, base, strict=True):
+        with np.errstate(all="ignore"):
+            yh = model.simulate(th, seg, x0)
+        parts.append(((yh - y0) / w).ravel() / h)
+    col = np.concatenate(parts)
+    return col if np.all(np.isfinite(col)) else np.zeros_like(col)
+
+
+def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequence[Effect],
+                     progress: Progress | None = None) -> list[CandidateScore]:
+    """Score ``candidates`` against ``fit``'s residual on ``segments`` (the fit's own data);
+    returns them ranked by projected ``R^2``, strongest first."""
+    e = fit.residual_
+    m_rows = e.size
+    q_mat, _ = np.linalg.qr(sensitivities(fit, segments))
+    e_p = e - q_mat @ (q_mat.T @ e)
+    ee = float(e @ e) or 1.0
+    w = fit.weights_
+    base = [fit.model.simulate(fit.theta_, s, x0) for s, x0 in zip(segments, fit.x0_,
+                                                                     strict=True)]
+    view = SegmentView(segments[0].dt, segments[0].u, segments[0].y)
+    scores = []
+    for cand in candidates:
+        t0 = time.monotonic()
+        best: CandidateScore | None = None
+        variants: list[dict[str, object]] = []
+        for vlabel, shape in cand.variants(view):
+            null = cand.null_vector()
+            for name, v in shape.items():
+                null[cand.pindex(name)] = v
+            model, theta = _candidate_theta(fit, cand, null)
+            off = len(fit.theta_)
+            cols, steps = [], []
+            for gname in cand.gain_names():
+                gi = cand.pindex(gname)
+                spec = cand.params[gi]
+                if isinstance(cand, MeasurementDelay):
+                    h = segments[0].dt
+                elif spec.step is not None:
+                    h = spec.step
+                else:
+                    h = 1.0
+                    col = _column(model, theta, segments, fit.x0_, base, w, off + gi, h)
+                    rms = float(np.sqrt(np.mean(col ** 2)))
+                    if rms > 0:
+                        h = 1e-3 / rms
+                if null[gi] + h > spec.upper:
+                    h = -h
+                cols.append(_column(model, theta, segments, fit.x0_, base, w, off + gi, h))
+                steps.append(h)
+            Z = np.column_stack(cols)
+            Zp = Z - q_mat @ (q_mat.T @ Z)
+            gains = [cand.pindex(g) for g in cand.gain_names()]
+            lb = np.array([cand.params[i].lower - null[i] for i in gains])
+            ub = np.array([cand.params[i].upper - null[i] for i in gains])
+            outside = np.linalg.norm(Zp, axis=0) / np.maximum(np.linalg.norm(Z, axis=0), 1e-300)
+            keep = outside > ABSORBED
+            r2, beta, corr = _explained(Zp, e_p, ee, lb, ub, keep)
+            r2_raw, _, corr_raw = _explained(Z, e, ee, lb, ub, keep)
+            variants.append({"variant": vlabel, "r2_projected": r2,
+                             "fraction_outside_model_span": outside.tolist()})
+            if best is None or r2 > best.r2:
+                implied = {cand.params[cand.pindex(g)].name: float(null[cand.pindex(g)] + b)
+                           for g, b in zip(cand.gain_names(), beta, strict=True)}
+                for name, v in shape.items():
+                    implied[name] = float(v)
+                dof = Z.shape[1]
+                lm = m_rows * r2
+                best = CandidateScore(
+                    effect=cand.with_initial(implied), r2=r2, r2_raw=r2_raw, lm=lm, dof=dof,
+                    p_value=float(stats.chi2.sf(lm, dof)), corr=corr, corr_raw=corr_raw,
+                    variant=vlabel, variants=variants, implied=implied)
+        assert best is not None
+        best.variants = variants
+        if isinstance(cand, MeasurementDelay):
+            scan = []
+            for seg, yb in zip(segments, base, strict=True):
+                scan.append(cand.scan(yb, seg.y, seg.dt, float(w[cand.index])))
+            tot = [{"delay_s": s0["delay_s"], "sse": sum(s[i]["sse"] for s in scan)}
+                   for i, s0 in enumerate(scan[0])]
+            kbest = min(tot, key=lambda d: d["sse"])
+            best.extra["delay_scan"] = tot
+            best.extra["best_delay_s"] = kbest["delay_s"]
+            best.extra["sse_reduction_percent_at_best_delay"] = (
+                100.0 * (tot[0]["sse"] - kbest["sse"]) / tot[0]["sse"] if tot[0]["sse"] else 0.0)
+            if kbest["delay_s"] > 0:
+                best.effect = best.effect.with_initial({cand.params[0].name: kbest["delay_s"]})
+                best.implied[cand.params[0].name] = kbest["delay_s"]
+        if isinstance(cand, PeriodicDisturbance) and cand.member is not None:
+            best.extra["order_spectrum"] = cand.order_spectrum(
+                member_force_residual(fit, segments[0], cand.member), view)
+        scores.append(best)
+        if progress:
+            progress(f"  score {best.label:<40s} R2 {100 * best.r2:7.3f} %  "
+                     f"({time.monotonic() - t0:.1f} s)")
+    scores.sort(key=lambda s: s.r2, reverse=True)
+    return scores
+
+
+def member_force_residual(fit: OEFit, seg: Segment, member: Array) -> Array:
+    """The OE residual of ``seg`` mapped back to a force on ``member``: ``g = F^-1 (e' - A e)``
+    (generalised force, ``e'`` by central differences), ``tau = c.g / c.c``; shape (N,).
+
+    A disturbance force appears here as itself instead of filtered by the model's dynamics."""
+    i = next((k for k, s in enumerate(fit.segments_) if s is seg), 0)
+    A, _, F = fit.model.structure.matrices(fit.theta_[: fit.model.n_struct])
+    yh = fit.model.simulate(fit.theta_, seg, fit.x0_[i])
+    e = seg.y - yh
+    de = np.gradient(e, seg.dt, axis=0)
+    g = np.linalg.solve(F, (de - e @ A.T).T).T
+    return np.asarray(g @ member / float(member @ member))
+
+
+def _explained(Z: Array, e: Array, ee: float, lb: Array, ub: Array, keep: NDArray[np.bool_]
+                ) -> tuple[float, Array, float]:
+    """Bounded LS of ``e`` on the kept columns of ``Z`` (coefficients within ``[lb, ub]``):
+    (fraction of ``ee`` removed, coefficients (0 for dropped columns), correlation: signed for a
+    single column, else the multiple correlation)."""
+    beta = np.zeros(Z.shape[1])
+    norms = np.linalg.norm(Z, axis=0)
+    use = keep & (norms > 0)
+    if not np.any(use):
+        return 0.0, beta, 0.0
+    Zk = Z[:, use] / norms[use]
+    lo, hi = lb[use] * norms[use], ub[use] * norms[use]
+    sol = lsq_linear(Zk, e, bounds=(np.minimum(lo, 0.0), np.maximum(hi, 0.0)))
+    beta[use] = sol.x / norms[use]
+    res = e - Zk @ sol.x
+    r2 = min(max((ee - float(res @ res)) / ee, 0.0), 1.0)
+    if Z.shape[1] == 1:
+        corr = float(Zk[:, 0] @ e) / math.sqrt(ee)
+    else:
+        corr = math.sqrt(r2)
+    return r2, beta, corr
+
+
+def sensitivities(fit: OEFit, segments: Sequence[Segment], rel_step: float = 1e-4) -> Array:
+    """Jacobian of the weighted simulated outputs with respect to the free parameters and the
+    initial states, by central differences with a relative step (secant sensitivities, smoother
+    than the fit's own Jacobian when dry friction makes the simulation non-smooth).
+
+    Returns:
+        Shape (m, q), rows ordered like ``fit.residual_``.
+    """
+    m = fit.model
+    w = fit.weights_
+    theta = fit.theta_
+    cols = []
+
+    def sim(th: Array, x0s: Sequence[Array]) -> Array:
+        with np.errstate(all="ignore"):
+            return np.concatenate([(m.simulate(th, s, x0) / w).ravel()
+                                   for s, x0 in zip(segments, x0s, strict=True)])
+    for i in np.flatnonzero(m.free):
+        h = rel_step * max(abs(float(theta[i])), 1e-8)
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        cols.append((sim(tp, fit.x0_) - sim(tm, fit.x0_)) / (2 * h))
+    for k in range(len(segments)):
+        for j in range(m.nx):
+            h = rel_step * max(float(w[j]), 1e-12) * 10.0
+            xp = [x.copy() for x in fit.x0_]
+            xm = [x.copy() for x in fit.x0_]
+            xp[k][j] += h
+            xm[k][j] -= h
+            cols.append((sim(theta, xp) - sim(theta, xm)) / (2 * h))
+    J = np.column_stack(cols)
+    return np.asarray(np.nan_to_num(J))
+
+
+def _struct_guesses(fit_segments: Sequence[Segment], desc: Description) -> list[Array]:
+    phys = np.array([p.initial for p in desc.structure.params], dtype=float)
+    return [phys]
+
+
+def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
+             config: LoopConfig | None = None, progress: Progress | None = None
+             ) -> IdentificationResult:
+    """Run baseline fit, scoring and the augment loop (see module docstring).
+
+    Args:
+        est: estimation segments (fitted jointly, each with its own initial state).
+        val: validation segments (never used for fitting; initial states estimated with the
+            parameters fixed).
+        desc: the actuator description.
+        config: loop options (default from the description).
+        progress: called with progress lines.
+
+    Raises:
+        DataError: no validation data, or segment names disagree with the description.
+        FitError: the baseline fit failed.
+    """
+    t_start = time.monotonic()
+    cfg = config or LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate)
+    say = progress or (lambda _m: None)
+    if not est:
+        raise DataError("no estimation bag given")
+    if not val:
+        raise DataError("no validation bag given: figures are always computed on data not used "
+                        "for estimation (pass --validate BAG)")
+    notes: list[str] = []
+    q = max(1, cfg.fit_decimate)
+    fit_segs = [decimate(s, q) for s in est] if q > 1 else list(est)
+    if q > 1:
+        notes.append(f"estimation data decimated by {q} for fitting and scoring "
+                     f"({1.0 / fit_segs[0].dt:g} Hz); figures at the full rate")
+    say(f"baseline fit: {len(est)} estimation segment(s), {sum(s.n for s in fit_segs)} samples, "
+        f"{cfg.starts} starts")
+    base_model = OEModel(desc.structure)
+    base_fit = OEFit(base_model, starts=cfg.starts, seed=cfg.seed,
+                     extra_starts=_struct_guesses(fit_segs, desc), progress=say).fit(fit_segs)
+    baseline = make_stage("baseline", base_fit, est, val, q == 1, cfg.lags)
+    if q > 1:
+        A, _ = baseline.linear()
+        fastest = float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
+        if fastest * fit_segs[0].dt > 0.5:
+            notes.append(f"warning: the fastest pole ({fastest:.3g} 1/s) is not well resolved "
+                         f"at the fitting step {fit_segs[0].dt:g} s; use a smaller fit_decimate")
+    say(f"baseline: validation fit {_fmt(baseline.val)}, estimation fit {_fmt(baseline.est)}")
+    current = baseline
+    remaining = desc.make_candidates()
+    rounds: list[list[CandidateScore]] = []
+    decisions: list[Decision] = []
+    rnd = 0
+    while cfg.augment and remaining and len(current.effects) < cfg.max_effects:
+        rnd += 1
+        say(f"round {rnd}: scoring {len(remaining)} candidate(s)")
+        scores = score_candidates(current.fit, fit_segs, remaining, say)
+        rounds.append(scores)
+        screened = [sc for sc in scores if sc.p_value < cfg.alpha and sc.r2 > 0.0]
+        if not screened:
+            say(f"round {rnd}: no candidate scores significantly (LM p < {cfg.alpha})")
+            break
+        trials = []
+        for sc in screened[: cfg.max_tries_per_round]:
+            say(f"round {rnd}: refit with {sc.label}")
+            dec = _try(current, sc, fit_segs, est, val, q == 1, cfg, rnd, say)
+            say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
+                f"({dec.reason})")
+            trials.append(dec)
+        decisions.extend(trials)
+        passing = [d for d in trials if d.accepted]
+        if not passing:
+            break
+        best = max(passing, key=lambda d: d.lr)
+        for d in passing:
+            if d is not best:
+                d.accepted = False
+                d.reason = (f"passes ({d.reason}) but {best.score.label} has the larger LR "
+                            f"({best.lr:.4g} > {d.lr:.4g}); rescored next round")
+        say(f"round {rnd}: ACCEPTED {best.score.label}")
+        assert best.stage is not None
+        current = best.stage
+        remaining = [c for c in remaining if c.label() != best.score.label]
+    return IdentificationResult(
+        description=desc, estimation_bags=[s.name for s in est],
+        validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,
+        decisions=decisions, config=cfg, seconds=time.monotonic() - t_start,
+        fit_dt=fit_segs[0].dt, notes=notes, val_segments=list(val))
+
+
+def _fmt(f: Figures) -> str:
+    return ", ".join(f"{n} {v:.2f} %" for n, v in zip(f.output_names, f.fit_percent,
+                                                       strict=True))
+
+
+def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
+         est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
+         rnd: int, say: Progress) -> Decision:
+    old = current.fit
+    model = OEModel(old.model.structure, (*old.model.effects, sc.effect))
+    theta0 = np.concatenate([old.theta_, [p.initial for p in sc.effect.params]])
+    extra = []
+    if cfg.refit_starts > 1:
+        alt = theta0.copy()
+        alt[len(old.theta_):] = [0.5 * p.initial if p.initial != p.null else p.initial
+                                 for p in sc.effect.params]
+        extra.append(alt)
+    try:
+        fit = OEFit(model, starts=cfg.refit_starts, seed=cfg.seed + rnd, theta0=theta0,
+                    extra_starts=extra, weights=old.weights_, progress=say).fit(fit_segs)
+    except FitError as exc:
+        return Decision(rnd, sc, False, f"refit failed: {exc}")
+    l0, n, _ = _seg_losses(old, fit_segs)
+    l1, _, _ = _seg_losses(fit, fit_segs)
+    k = fit.n_estimated_ - old.n_estimated_
+    lr = (n * float(np.sum(np.log(l0 / l1))) if np.all(l1 > 0) and np.all(l0 > 0)
+          else -math.inf)
+    thr = float(stats.chi2.ppf(1.0 - cfg.alpha, max(k, 1)))
+    dbic = -lr + k * math.log(n)
+    stage = make_stage(f"+{sc.label}", fit, est, val, same_rate, cfg.lags)
+    before, after = current.val.mean_fit, stage.val.mean_fit
+    gain = after - before
+    why = []
+    if not lr > thr:
+        why.append(f"LR {lr:.3g} <= chi2 threshold {thr:.3g}")
+    if not dbic < 0:
+        why.append(f"BIC did not decrease ({dbic:+.3g})")
+    if not gain >= cfg.min_validation_gain:
+        why.append(f"validation fit {before:.2f} -> {after:.2f} % (gain {gain:+.3f} < "
+                   f"{cfg.min_validation_gain} points)")
+    ok = not why
+    reason = (f"LR {lr:.4g} > {thr:.3g}, BIC {dbic:+.4g}, validation fit {before:.2f} -> "
+              f"{after:.2f} %" if ok else "; ".join(why))
+    return Decision(rnd, sc, ok, reason, lr=lr, lr_threshold=thr, dof=k, delta_bic=dbic,
+                    val_fit_before=before, val_fit_after=after, stage=stage)
