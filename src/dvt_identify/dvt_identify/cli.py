@@ -18,7 +18,16 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from dvt_identify.data import Segment, check_excitation, decimate, load_segment, lowpass
+import numpy as np
+
+from dvt_identify.data import (
+    Segment,
+    _constant,
+    check_excitation,
+    decimate,
+    load_segment,
+    lowpass,
+)
 from dvt_identify.description import DEFAULT_DESCRIPTION, Description, load_description
 from dvt_identify.errors import DataError, DvtIdentifyError
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
@@ -44,6 +53,35 @@ def load_segments(bags: Sequence[str | Path], desc: Description) -> list[Segment
     return out
 
 
+def used_inputs(desc: Description) -> set[str]:
+    """Inputs the baseline model uses: a non-zero column of the structure's ``B`` or an input
+    of a model effect."""
+    structure = desc.structure
+    theta = np.array([p.initial for p in structure.params], dtype=float)
+    _, B, _ = structure.matrices(theta)
+    names = set(desc.input_names)
+    used = {n for j, n in enumerate(desc.input_names) if np.any(B[:, j] != 0.0)}
+    for eff in desc.make_model_effects():
+        if 0 <= eff.index < len(desc.input_names):
+            used.add(desc.input_names[eff.index])
+    return used & names
+
+
+def drop_unexcited_model_effects(desc: Description, est: Sequence[Segment]
+                                 ) -> tuple[Description, list[str]]:
+    """Remove model effects whose input is constant in every estimation segment (e.g. the
+    band of a gear the run never used): their parameters could not be identified."""
+    keep, dropped = [], []
+    for spec, eff in zip(desc.model_effects, desc.make_model_effects(), strict=True):
+        j = eff.index
+        if 0 <= j < len(desc.input_names) and all(
+                _constant(seg.u[:, j], desc.checks) for seg in est):
+            dropped.append(eff.label())
+        else:
+            keep.append(spec)
+    return replace(desc, model_effects=tuple(keep)), dropped
+
+
 def run(est_bags: Sequence[str], val_bags: Sequence[str], out_dir: str | Path,
         description: str | None = None, augment: bool = True, starts: int | None = None,
         fit_decimate: int | None = None, quiet: bool = False) -> IdentificationResult:
@@ -64,8 +102,12 @@ def run(est_bags: Sequence[str], val_bags: Sequence[str], out_dir: str | Path,
         f"{len(val_bags)} validation bag(s)")
     est = load_segments(est_bags, desc)
     val = load_segments(val_bags, desc)
+    desc, dropped = drop_unexcited_model_effects(desc, est)
+    for label in dropped:
+        say(f"model effect {label} dropped: its input never varies in the estimation data")
     check_excitation(est, desc.checks,
-                     {s.name: f"{s.topic} {s.field}[{s.joint}]" for s in desc.inputs})
+                     {s.name: f"{s.topic} {s.field}[{s.joint}]" for s in desc.inputs},
+                     used=used_inputs(desc))
     say(f"data read in {time.monotonic() - t0:.1f} s: "
         + ", ".join(f"{Path(s.name).name} {s.n} samples at {1 / s.dt:g} Hz" for s in est + val))
     cfg = LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate)

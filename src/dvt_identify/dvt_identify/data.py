@@ -435,17 +435,21 @@ def load_segment(bag: str | Path, inputs: Sequence[SignalSpec], outputs: Sequenc
 
 
 def check_excitation(segments: Sequence[Segment], checks: Checks | None = None,
-                     input_topics: Mapping[str, str] | None = None) -> None:
-    """Refuse a set of estimation segments in which some input never varies.
+                     input_topics: Mapping[str, str] | None = None,
+                     used: set[str] | None = None) -> None:
+    """Refuse a set of estimation segments in which some (used) input never varies.
 
     Args:
         segments: the estimation segments (fitted jointly).
         input_topics: optional input name -> "topic field[joint]" used in the message.
+        used: inputs the model uses (default: all); a constant unused input is fine.
     """
     checks = checks or Checks()
     if not segments:
         raise DataError("no estimation data")
     for j, name in enumerate(segments[0].input_names):
+        if used is not None and name not in used:
+            continue
         if all(_constant(s.u[:, j], checks) for s in segments):
             where = (input_topics or {}).get(name, name)
             bags = ", ".join(s.name for s in segments)

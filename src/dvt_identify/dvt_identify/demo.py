@@ -68,10 +68,11 @@ def model_replay(out: Path) -> dict[str, Any]:
     exe = SingleThreadedExecutor(context=ctx)
     exe.add_node(listener)
     pred: dict[int, list[float]] = {}
-    listener.create_subscription(
-        JointState, rosutil.MODEL_JOINT_STATES,
-        lambda m: pred.__setitem__(rosutil.stamp_to_ns(m.header.stamp), list(m.velocity)),
-        rosutil.SENSOR_QOS)
+    def on_pred(m: JointState) -> None:
+        pred[rosutil.stamp_to_ns(m.header.stamp)] = list(m.velocity)
+
+    listener.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, on_pred,
+                                 rosutil.SENSOR_QOS)
     try:
         deadline = time.monotonic() + 30
         while listener.count_publishers(rosutil.MODEL_JOINT_STATES) < 1:
@@ -111,7 +112,7 @@ def model_replay(out: Path) -> dict[str, Any]:
     fig.tight_layout()
     png = out / "model_replay.png"
     fig.savefig(png, dpi=110)
-    summary = {"samples": int(len(run.t)), "predicted": int(len(idx)),
+    summary = {"samples": len(run.t), "predicted": len(idx),
                "residual_rms_rad_s": {"sun_shaft": float(rms[0]), "carrier3": float(rms[1])},
                "plot": str(png)}
     _log(f"model replay: {json.dumps(summary)}")

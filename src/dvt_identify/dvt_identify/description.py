@@ -14,6 +14,8 @@ A description is a YAML file (see ``descriptions/emps.yaml`` for a complete exam
       force_unit: N
       speed_unit: m/s
       parameters: {M: {initial: 100, lower: 0.001, unit: kg}, Fv: {initial: 200, lower: 0}}
+    model_effects:                # part of the baseline model (e.g. the band brakes)
+      - {effect: brake_lockup, where: ring1, member: {...}, input: brake1, initial: {Tb: 8}}
     candidates:
       - {effect: coulomb_friction, where: carriage, offset: true}
     preprocess: {lowpass: null, decimate: 1, fit_decimate: 1}
@@ -108,6 +110,7 @@ class Description:
     fit: FitOptions
     notes: tuple[str, ...] = ()
     text: str = ""
+    model_effects: tuple[CandidateSpec, ...] = ()
 
     @property
     def input_names(self) -> tuple[str, ...]:
@@ -121,15 +124,42 @@ class Description:
 
     def make_candidates(self) -> list[Effect]:
         """Build the candidate effects (parameter names get ``_<where>`` when an effect appears
-        more than once)."""
-        counts = Counter(c.effect for c in self.candidates)
+        more than once; ``_add`` is appended where a name would clash with a model effect's)."""
+        taken = {p.name for e in self.make_model_effects() for p in e.params}
+        return self._build(self.candidates, always=False, taken=taken)
+
+    def make_model_effects(self) -> list[Effect]:
+        """Build the effects that are part of the baseline model (``model_effects``, e.g. the
+        band brakes), with the initial values of their ``initial`` option; parameter names are
+        ``<name>_<where>`` (``Tb_ring1``, ``tau_brake1``)."""
+        return self._build(self.model_effects, always=True, taken=set())
+
+    def _build(self, specs: tuple[CandidateSpec, ...], always: bool, taken: set[str]
+               ) -> list[Effect]:
+        counts = Counter(c.effect for c in specs)
         out = []
-        for c in self.candidates:
-            suffix = f"_{c.where}" if counts[c.effect] > 1 else ""
-            out.append(make_effect(c.effect, c.where, self.output_names, self.input_names,
-                                   force_unit=self.structure.force_unit,
-                                   speed_unit=self.structure.speed_unit,
-                                   member=c.member, options=c.options, suffix=suffix))
+        for c in specs:
+            suffix = f"_{c.where}" if always or counts[c.effect] > 1 else ""
+            probe = make_effect(c.effect, c.where, self.output_names, self.input_names,
+                                member=c.member,
+                                options={k: v for k, v in c.options.items() if k != "initial"},
+                                suffix=suffix)
+            if any(p.name in taken for p in probe.params):
+                suffix += "_add"
+            opts = {k: v for k, v in c.options.items() if k != "initial"}
+            eff = make_effect(c.effect, c.where, self.output_names, self.input_names,
+                              force_unit=self.structure.force_unit,
+                              speed_unit=self.structure.speed_unit,
+                              member=c.member, options=opts, suffix=suffix)
+            init = c.options.get("initial")
+            if init is not None:
+                if not isinstance(init, dict):
+                    raise DescriptionError(f"{self.source}: {c.effect}@{c.where}: initial: "
+                                           f"expected a mapping, got {init!r}")
+                base = {s.name: s.name.removesuffix(suffix) for s in eff.params}
+                eff = eff.with_initial({name: float(init[b]) for name, b in base.items()
+                                        if b in init})
+            out.append(eff)
         return out
 
 
@@ -251,6 +281,7 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
     structure = _structure(_req(data, "structure", source), states,
                            tuple(s.name for s in inputs), f"{source}: structure")
     cands = _candidates(data.get("candidates"), states, f"{source}: candidates")
+    model_fx = _candidates(data.get("model_effects"), states, f"{source}: model_effects")
     pre = data.get("preprocess") or {}
     chk = data.get("checks") or {}
     fit = data.get("fit") or {}
@@ -264,8 +295,10 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
     desc = Description(name=str(data.get("name", Path(source).stem)), source=source,
                        inputs=inputs, outputs=outputs, structure=structure, candidates=cands,
                        preprocess=preprocess, checks=checks, fit=fopts,
-                       notes=tuple(str(n) for n in data.get("notes", []) or []), text=text)
+                       notes=tuple(str(n) for n in data.get("notes", []) or []), text=text,
+                       model_effects=model_fx)
     desc.make_candidates()  # validate names and options now
+    desc.make_model_effects()
     return desc
 
 

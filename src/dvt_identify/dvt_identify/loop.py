@@ -456,7 +456,9 @@ def sensitivities(fit: OEFit, segments: Sequence[Segment], rel_step: float = 1e-
 
 
 def _struct_guesses(fit_segments: Sequence[Segment], desc: Description) -> list[Array]:
-    phys = np.array([p.initial for p in desc.structure.params], dtype=float)
+    phys = np.array([p.initial for p in desc.structure.params]
+                    + [p.initial for e in desc.make_model_effects() for p in e.params],
+                    dtype=float)
     return [phys]
 
 
@@ -493,7 +495,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                      f"({1.0 / fit_segs[0].dt:g} Hz); figures at the full rate")
     say(f"baseline fit: {len(est)} estimation segment(s), {sum(s.n for s in fit_segs)} samples, "
         f"{cfg.starts} starts")
-    base_model = OEModel(desc.structure)
+    base_model = OEModel(desc.structure, desc.make_model_effects())
+    n_model_effects = len(base_model.effects)
     base_fit = OEFit(base_model, starts=cfg.starts, seed=cfg.seed,
                      extra_starts=_struct_guesses(fit_segs, desc), progress=say).fit(fit_segs)
     baseline = make_stage("baseline", base_fit, est, val, q == 1, cfg.lags)
@@ -509,7 +512,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     rounds: list[list[CandidateScore]] = []
     decisions: list[Decision] = []
     rnd = 0
-    while cfg.augment and remaining and len(current.effects) < cfg.max_effects:
+    while (cfg.augment and remaining
+           and len(current.effects) - n_model_effects < cfg.max_effects):
         rnd += 1
         say(f"round {rnd}: scoring {len(remaining)} candidate(s)")
         scores = score_candidates(current.fit, fit_segs, remaining, say)

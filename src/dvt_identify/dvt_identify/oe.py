@@ -665,13 +665,14 @@ class OEModel:
         if theta.shape != (len(self.specs),):
             raise FitError(f"theta: expected shape ({len(self.specs)},), got {theta.shape}")
         A, B, F = self.structure.matrices(theta[: self.n_struct])
-        view = SegmentView(seg.dt, seg.u, seg.y)
         ps = self.effect_params(theta)
         u = seg.u
         for e, p in zip(self.effects, ps, strict=True):
             ut = e.input_transform(p, u, seg.dt)
             if ut is not None:
                 u = ut
+        # effects see the transformed inputs (a brake's capacity follows its engagement lag)
+        view = SegmentView(seg.dt, u, seg.y)
         w = u @ B.T
         smooth: list[tuple[Array, Callable[[float], float]]] = []
         dry: list[tuple[Array, Array | float, float]] = []
