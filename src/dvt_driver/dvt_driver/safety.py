@@ -16,7 +16,9 @@ Policy (see ``docs/driver.md``):
   With no fresh motor command in that time the motor is switched off (mode OFF, counted in
   ``watchdog_trips``). The brakes keep their last commanded current: releasing a band while the
   output is loaded, or in the middle of a shift, drops the load - holding is the safe side.
-* **Trips.** A measured sun speed above ``max_sun_speed``, or the controller reporting
+* **Trips.** A measured sun speed above ``max_sun_speed * (1 + OVERSPEED_MARGIN)`` (2 %: a
+  speed loop holding the limit itself rides a little above it and must not trip), or the
+  controller reporting
   OVERSPEED / FAULT / its own WATCHDOG, switches the motor off (counted in ``trips``). The motor
   stays off until a new motor command arrives; while the measured speed is still above the
   limit new motor commands are refused.
@@ -123,6 +125,11 @@ def _setting(name: str, value: Any, low: float, high: float, *, low_open: bool =
         raise SafetyConfigError(f"{name}: expected a value in {bracket}{low:g}, {high:g}]{unit}, "
                                 f"got {value!r}")
     return v
+
+
+OVERSPEED_MARGIN = 0.02
+"""Measured sun speed may exceed ``max_sun_speed`` by this fraction before the driver trips
+(the controller trips at 5 %): set-points up to the limit itself stay usable."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -511,10 +518,12 @@ class Supervisor:
                 expiring while the host has the motor off anyway is not a trip).
         """
         reason = None
-        over = not math.isfinite(sun_speed) or abs(sun_speed) > self.limits.max_sun_speed
+        trip_at = self.limits.max_sun_speed * (1.0 + OVERSPEED_MARGIN)
+        over = not math.isfinite(sun_speed) or abs(sun_speed) > trip_at
         if over and not self.overspeed:
             reason = (f"overspeed: measured sun speed {sun_speed:.6g} rad/s exceeds "
-                      f"{self.limits.max_sun_speed:g} rad/s")
+                      f"{trip_at:g} rad/s (limit {self.limits.max_sun_speed:g} + "
+                      f"{OVERSPEED_MARGIN:.0%})")
         self.overspeed = over
         relevant = frozenset(f for f in controller_flags
                              if f != "WATCHDOG" or self.mode is not MotorMode.OFF)
