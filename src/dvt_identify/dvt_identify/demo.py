@@ -1,14 +1,24 @@
-"""The README's demo (``scripts/demo.sh OUTDIR``).
+"""The README's demo (``scripts/demo.sh OUTDIR``): the whole loop on the simulated plant.
 
-Stage 1 (model): a run simulated by the physics core is written as a bag, replayed with
-``dvt-replay`` into the live ``dvt_model_node``, and the model's prediction is recorded from the
-topics and plotted against the measurement (``OUTDIR/model_replay.png``).
+1. **Model** (``model_replay.png``): a run simulated by the physics core is written as a bag,
+   replayed with ``dvt-replay`` into the live ``dvt_model_node`` and its prediction plotted
+   against the measurement.
+2. **Record** (``run-est``, ``run-val``): ``dvt-launch sim`` starts the simulated plant (on a
+   pseudo-terminal, with an *undeclared* Coulomb friction in it), the lifecycle driver, the
+   model node (with the thesis's physics as its prior) and the recorder, and runs the
+   identification experiment twice (different seeds): estimation and validation recordings.
+3. **Identify and push**: a live model node and ``dvt_identify_node`` run; the validation run is
+   replayed (residual *before*), the identifier is asked over its request topic to refit from
+   the estimation bag, trace the residual and augment the model (report in ``identify/``); it
+   pushes the accepted model to the model node, and the validation run is replayed again
+   (residual *after*). ``closed_loop.png`` shows both.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -119,13 +129,175 @@ def model_replay(out: Path) -> dict[str, Any]:
     return summary
 
 
+def _launch_record(out: Path, name: str, seed: int, hidden: str) -> Path:
+    bag = out / name
+    if bag.exists():
+        shutil.rmtree(bag)
+    cmd = [str(BIN / "dvt-launch"), "sim", "--hidden", hidden, "--seed", str(seed),
+           "--experiment", "ident", "--experiment-seed", str(seed), "--record", str(bag),
+           "--model-param", "params:=thesis", "--log-dir", str(out / "logs" / name)]
+    _log(f"recording {name}: {' '.join(cmd[1:])}")
+    subprocess.run(cmd, check=True, timeout=600)
+    return bag
+
+
+class _Live:
+    """Model node + identifier node + a listener, for the closed-loop stage."""
+
+    def __init__(self, out: Path) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+
+        from dvt_model import rosutil
+
+        self.procs = [
+            subprocess.Popen([str(BIN / "dvt_model_node"), "--ros-args", "-p", "params:=thesis"],
+                             start_new_session=True),
+            subprocess.Popen([str(BIN / "dvt_identify_node"), "--ros-args", "-p",
+                              f"output_dir:={out / 'identify'}"], start_new_session=True),
+        ]
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")))
+        self.node = rclpy.create_node("dvt_demo", context=self.ctx)
+        self.exe = SingleThreadedExecutor(context=self.ctx)
+        self.exe.add_node(self.node)
+        self.pred: dict[int, list[float]] = {}
+        self.results: list[dict[str, Any]] = []
+
+        def on_pred(m: JointState) -> None:
+            self.pred[rosutil.stamp_to_ns(m.header.stamp)] = list(m.velocity)
+
+        def on_result(m: String) -> None:
+            self.results.append(json.loads(m.data))
+
+        self.node.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, on_pred,
+                                      rosutil.SENSOR_QOS)
+        self.node.create_subscription(
+            String, "/dvt/identify/result", on_result,
+            QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.request = self.node.create_publisher(String, "/dvt/identify/request", 10)
+        self.until(lambda: self.node.count_publishers(rosutil.MODEL_JOINT_STATES) > 0
+                   and self.request.get_subscription_count() > 0, 60.0, "nodes to start")
+
+    def until(self, pred: Any, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            self.exe.spin_once(timeout_sec=0.05)
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+    def replay(self, bag: Path) -> dict[int, list[float]]:
+        self.pred.clear()
+        proc = subprocess.Popen([str(BIN / "dvt-replay"), str(bag), "--wait-subscribers", "1"])
+        self.until(lambda: proc.poll() is not None, 300.0, "the replay")
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            self.exe.spin_once(timeout_sec=0.05)
+        return dict(self.pred)
+
+    def identify(self, est: Path, val: Path) -> dict[str, Any]:
+        from std_msgs.msg import String
+
+        self.results.clear()
+        self.request.publish(String(data=json.dumps({"estimation": [str(est)],
+                                                     "validation": [str(val)]})))
+        _log("identifier running (baseline fit, residual tracing, augmentation) ...")
+        self.until(lambda: self.results, 1800.0, "the identification result")
+        return self.results[-1]
+
+    def close(self) -> None:
+        import rclpy
+
+        for p in self.procs:
+            p.send_signal(signal.SIGINT)
+        for p in self.procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+def _residuals(bag: Path, pred: dict[int, list[float]]) -> tuple[Any, Any, Any, Any]:
+    from dvt_model.bagio import read_run
+
+    run = read_run(bag)
+    idx = np.array([k for k, s in enumerate(run.stamps_ns) if int(s) in pred])
+    yhat = np.array([pred[int(run.stamps_ns[k])] for k in idx])
+    return run.t[idx], run.speeds[idx], yhat, run.speeds[idx] - yhat
+
+
+def closed_loop(out: Path, hidden: str = "coulomb") -> dict[str, Any]:
+    """Stages 2 and 3 (see module docstring)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    est = _launch_record(out, "run-est", 1, hidden)
+    val = _launch_record(out, "run-val", 2, hidden)
+    live = _Live(out)
+    try:
+        _log("replaying the validation run into the model node (physics prior)")
+        before = live.replay(val)
+        result = live.identify(est, val)
+        if "error" in result:
+            raise RuntimeError(f"identification failed: {result['error']}")
+        _log(f"identified and pushed: accepted {result.get('accepted')}, "
+             f"validation fit {result.get('final_fit_percent')}")
+        _log("replaying the validation run into the updated model node")
+        after = live.replay(val)
+    finally:
+        live.close()
+    t0, y0, yh0, r0 = _residuals(val, before)
+    t1, _y1, yh1, r1 = _residuals(val, after)
+    rms0 = np.sqrt(np.mean(r0 ** 2, axis=0))
+    rms1 = np.sqrt(np.mean(r1 ** 2, axis=0))
+    fig, axes = plt.subplots(4, 1, figsize=(11, 10), sharex=True)
+    names = ("sun shaft", "carrier 3")
+    for j in range(2):
+        ax = axes[j]
+        ax.plot(t0, y0[:, j], lw=0.6, color="k", label="measured (validation run)")
+        ax.plot(t0, yh0[:, j], lw=0.8, label="model before (thesis physics prior)")
+        ax.plot(t1, yh1[:, j], lw=0.8, label="model after (identified + accepted effects)")
+        ax.set_ylabel(f"{names[j]} [rad/s]")
+        ax.legend(loc="upper right", fontsize=7)
+        ax2 = axes[2 + j]
+        ax2.plot(t0, r0[:, j], lw=0.6, label=f"residual before (RMS {rms0[j]:.2f} rad/s)")
+        ax2.plot(t1, r1[:, j], lw=0.6, label=f"residual after (RMS {rms1[j]:.2f} rad/s)")
+        ax2.set_ylabel(f"{names[j]} residual [rad/s]")
+        ax2.legend(loc="upper right", fontsize=7)
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(f"Closed loop on the simulated plant (hidden: {hidden}): live residual "
+                 f"before/after identify + push")
+    fig.tight_layout()
+    png = out / "closed_loop.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return {"estimation_bag": str(est), "validation_bag": str(val),
+            "identification": result,
+            "live_residual_rms_before": {"sun_shaft": float(rms0[0]), "carrier3": float(rms0[1])},
+            "live_residual_rms_after": {"sun_shaft": float(rms1[0]), "carrier3": float(rms1[1])},
+            "plot": str(png)}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     out = Path(args[0] if args else "demo-out").resolve()
     out.mkdir(parents=True, exist_ok=True)
-    summary = {"model_replay": model_replay(out)}
+    summary: dict[str, Any] = {"model_replay": model_replay(out)}
+    summary["closed_loop"] = closed_loop(out)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    _log(f"done: {out / 'summary.json'}")
+    cl = summary["closed_loop"]
+    _log(f"live residual RMS before {cl['live_residual_rms_before']}, "
+         f"after {cl['live_residual_rms_after']}")
+    _log(f"done: {out / 'summary.json'}, plots {out / 'model_replay.png'}, "
+         f"{out / 'closed_loop.png'}, report {out / 'identify'}")
     return 0
 
 

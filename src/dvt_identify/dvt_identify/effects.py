@@ -293,6 +293,39 @@ class Backlash(Effect):
 
 
 @dataclass
+class OutputBacklash(Effect):
+    """Lost motion of half-width ``delta`` between a member and its speed sensor (play
+    operator on the integrated output): after a reversal the sensed shaft stands still until
+    the gap is crossed. ``theta_out`` follows ``theta = integral of x_j`` within
+    ``[theta - delta, theta + delta]``; the measured speed is ``d theta_out / dt``.
+    Parameter ``delta`` (>= 0, rad or m).
+    """
+
+    name = "backlash"
+
+    def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
+        d = max(float(p[0]), 0.0)
+        if d == 0.0:
+            return None
+        j = self.index
+        theta = np.concatenate([[0.0], np.cumsum(y[:-1, j]) * dt])
+        out_pos = np.empty_like(theta)
+        pos = 0.0
+        for k, th in enumerate(theta.tolist()):
+            if th - pos > d:
+                pos = th - d
+            elif pos - th > d:
+                pos = th + d
+            out_pos[k] = pos
+        out = y.copy()
+        speed = np.empty(y.shape[0])
+        speed[:-1] = np.diff(out_pos) / dt
+        speed[-1] = y[-1, j] if abs(theta[-1] - out_pos[-1]) >= d else 0.0
+        out[:, j] = speed
+        return out
+
+
+@dataclass
 class BrakeEngagement(Effect):
     """First-order engagement lag of one input: ``tau u_eff' = u - u_eff`` (exact ZOH steps).
 
@@ -528,6 +561,11 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
         return cls(where=where, params=(P("dFv" + sfx, 0.0, -inf, inf, unit),), member=mvec(),
                    options=opts)
     if name == "backlash":
+        if where in state_names:  # lost motion between the member and its sensor
+            unit = su.split("/")[0] if su else ""
+            return OutputBacklash(where=where, params=(P("delta" + sfx, 0.0, 0.0, 1.0, unit,
+                                                         step=2e-3),),
+                                  index=state_index(where), options=opts)
         return cls(where=where, params=(P("delta" + sfx, 0.0, 0.0, inf, "input unit"),),
                    index=input_index(where), options=opts)
     if name == "brake_engagement":

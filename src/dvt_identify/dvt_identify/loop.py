@@ -325,11 +325,16 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                 elif spec.step is not None:
                     h = spec.step
                 else:
+                    # probe for the scale of the gain: a unit step can make the simulation blow
+                    # up (e.g. quadratic drag at hundreds of rad/s), so shrink until it is finite
                     h = 1.0
-                    col = _column(model, theta, segments, fit.x0_, base, w, off + gi, h)
-                    rms = float(np.sqrt(np.mean(col ** 2)))
-                    if rms > 0:
-                        h = 1e-3 / rms
+                    for _ in range(8):
+                        col = _column(model, theta, segments, fit.x0_, base, w, off + gi, h)
+                        rms = float(np.sqrt(np.mean(col ** 2)))
+                        if rms > 0:
+                            h = 1e-3 / rms
+                            break
+                        h *= 1e-3
                 if null[gi] + h > spec.upper:
                     h = -h
                 cols.append(_column(model, theta, segments, fit.x0_, base, w, off + gi, h))

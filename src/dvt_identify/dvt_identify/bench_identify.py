@@ -1,0 +1,703 @@
+"""``dvt-bench identify``: how fast the identifier is, and how good its statistics are.
+
+A benchmark, not a test: it prints what it measured, met targets or not.
+
+Timing mode (default)::
+
+    dvt-bench identify [--seconds 60] [--rate 1000] [--scaling 15,30] [--json]
+                       [--fit-decimate Q] [--starts K] [--max-tries T] [--no-loop] [--keep DIR]
+
+Simulates an identification run of the DVT offline (no ROS, no real time) with
+:func:`dvt_driver.offline.run_offline`: the ``ident`` experiment schedule
+(:mod:`dvt_driver.experiment_core`, phases stretched to ``--seconds``) goes through the driver's
+supervisor (gear shifts, keep-alive) into the simulated controller and transmission
+(:class:`dvt_driver.plant_core.PlantSim`, hidden preset ``none``: the ``physical`` parameter set
+with the bench sensors), one sample at a time.
+The measured speeds and currents are written with :func:`dvt_model.bagio.write_run` (a second
+run with the next seed is the validation bag). Then :func:`dvt_identify.cli.run` is timed with
+``augment=False`` (``baseline_seconds``) and with the augment loop (``loop_seconds``), both end
+to end (read both bags, check, fit, write the report with its plots), on the bundled ``dvt``
+description. The breakdown (bag reading, identification, report writing, baseline fit alone)
+is measured separately. ``scaling`` repeats the baseline on shorter runs of the same experiment
+(all its phases, proportionally shorter; a prefix would drop the gear phases and with them the
+band-brake model) and fits ``seconds ~ samples^exponent``.
+
+Monte Carlo mode::
+
+    dvt-bench identify --monte-carlo [N] [--mc-seconds 10] [--mc-rate 500] [--noise 0.05]
+                       [--workers 2] [--seed 0] [--json]
+
+``N`` (default 50) records simulated from a known linear model in the framework's own form: the
+description's structure (``dvt``: the mechanical grey box ``M11..D22`` in neutral, no brakes, no
+effects) at its initial (``thesis``) values, from rest, with a PRBS on every input its ``B`` uses
+(the motor current, +-2.5 A, clock 30 ms), plus white Gaussian output noise of known standard
+deviation ``sigma_j = noise * std(y_j, noise-free)`` (equal signal-to-noise ratio on every output,
+so the fit's default weighting ``1/std(y_j)`` is the maximum-likelihood one). Each record gets
+its own noise realisation (input fixed) and is fitted with :class:`dvt_identify.oe.OEFit` (no
+augmentation). Per parameter: ``true``, ``mean``, ``std`` (over the runs), ``crlb_std`` (the
+Cramér-Rao bound at the true values from the Fisher information ``J^T J`` with ``J`` the
+central-difference sensitivity of the noise-free output to the parameters and the initial
+states, each output divided by its ``sigma``), ``crlb_ratio = std / crlb_std``, ``bias``,
+``reported_std_mean`` (the fit's own standard deviation, averaged) and ``coverage_95`` (fraction
+of runs whose ``estimate +- 1.96 reported std`` contains the true value).
+
+Targets (from the issue): ``baseline_seconds <= 2``, ``loop_seconds <= 30``,
+``crlb_ratio <= 1.2``, ``0.93 <= coverage_95 <= 0.97``. With ``N`` runs the ratio itself is
+uncertain by about ``1/sqrt(2 (N - 1))`` (10 % at N = 50) and a coverage by
+``sqrt(0.95 * 0.05 / N)`` (3 points at N = 50); both are printed.
+
+Wall times depend on the machine's load: the load average before and after, and the process
+CPU time of every timed step, are printed too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from dvt_driver.errors import DvtDriverError
+from dvt_identify.data import Segment, make_segment
+from dvt_identify.description import Description, load_description
+from dvt_identify.errors import DvtIdentifyError, FitError
+from dvt_identify.oe import OEFit, OEModel
+from dvt_model.errors import DvtModelError
+
+Array = NDArray[np.float64]
+
+TARGET_BASELINE_SECONDS = 2.0
+TARGET_LOOP_SECONDS = 30.0
+TARGET_CRLB_RATIO = 1.2
+TARGET_COVERAGE = (0.93, 0.97)
+
+# The ``ident`` experiment's phase lengths [s] for a 60 s run (the stop phase is 1.5 s more).
+IDENT_60S: dict[str, float] = {"neutral_prbs": 12.0, "neutral_multisine": 10.0,
+                               "steps_dwell": 2.0, "shift": 0.8, "excite": 7.4}
+_IDENT_STOP = 1.5
+_IDENT_STRETCH = (IDENT_60S["neutral_prbs"] + IDENT_60S["neutral_multisine"]
+                  + 6 * IDENT_60S["steps_dwell"] + 3 * (IDENT_60S["shift"] + IDENT_60S["excite"]))
+_EPOCH_NS = 1_700_000_000 * 1_000_000_000  # stamps of the simulated runs start here
+
+Log = Callable[[str], None]
+
+
+class BenchError(DvtIdentifyError, ValueError):
+    """A benchmark setting is unusable (the message names the option and value)."""
+
+
+BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def blas_env() -> dict[str, str | None]:
+    """The BLAS/OpenMP thread-count variables of this process's environment."""
+    return {key: os.environ.get(key) for key in BLAS_ENV}
+
+
+def _quiet(_msg: str) -> None:
+    return None
+
+
+def _stderr(msg: str) -> None:
+    print(f"[dvt-bench identify] {msg}", file=sys.stderr, flush=True)
+
+
+def _load() -> list[float]:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:  # pragma: no cover - not on Linux
+        return []
+
+
+# ---------------------------------------------------------------------------------------------
+# Simulated recordings
+
+
+def ident_experiment(seconds: float, seed: int) -> Any:
+    """The ``ident`` experiment with every phase stretched so that it lasts ``seconds`` [s].
+
+    Raises:
+        BenchError: ``seconds`` too short for the stop phase.
+    """
+    from dvt_driver import experiment_core as ec
+
+    factor = (seconds - _IDENT_STOP) / _IDENT_STRETCH
+    if not factor > 0:
+        raise BenchError(f"--seconds: expected more than {_IDENT_STOP} s, got {seconds}")
+    settings = {k: round(v * factor, 6) for k, v in IDENT_60S.items()}
+    return ec.build("ident", seed=seed, **settings)
+
+
+def simulate_run(path: Path, seconds: float, rate_hz: float, seed: int, hidden: str = "none",
+                 params: str = "physical") -> dict[str, Any]:
+    """Simulate the stretched ``ident`` run offline and write it as a bag.
+
+    :func:`dvt_driver.offline.run_offline`: the schedule goes through the driver's
+    :class:`~dvt_driver.safety.Supervisor` (gear shifts become brake ramps, the runner's
+    keep-alive refreshes the motor command) into :class:`~dvt_driver.plant_core.PlantSim`
+    (sensor noise seeded with ``seed``) at ``rate_hz``; the bag holds the measured speeds
+    [rad/s] and currents [A] as the recorder would write them, plus ``truth.yaml``.
+
+    Returns:
+        ``{"path", "samples", "experiment", "simulate_seconds", "write_seconds", "trips",
+        "nacks", "gear_samples"}``.
+    """
+    from dvt_driver.hidden import load_hidden
+    from dvt_driver.offline import run_offline
+    from dvt_model.bagio import write_run
+    from dvt_model.params import load_parameters
+
+    t0 = time.perf_counter()
+    exp = replace(ident_experiment(seconds, seed), sample_period_us=round(1e6 / rate_hz))
+    run = run_offline(exp, load_parameters(params), load_hidden(hidden), seed=seed)
+    t_sim = time.perf_counter() - t0
+    truth = yaml.safe_load(run.truth) or {}
+    truth["experiment"] = exp.to_mapping()
+    truth["made_by"] = "dvt-bench identify (dvt_driver.offline.run_offline)"
+    t1 = time.perf_counter()
+    stamps = _EPOCH_NS + np.round(run.t * 1e9).astype(np.int64)
+    write_run(path, stamps, run.speeds, run.currents, truth=truth)
+    return {"path": str(path), "samples": int(run.t.size), "experiment": exp.to_mapping(),
+            "simulate_seconds": t_sim, "write_seconds": time.perf_counter() - t1,
+            "trips": len(run.trips), "nacks": run.nacks,
+            "gear_samples": {str(g): int(np.sum(run.gear == g)) for g in np.unique(run.gear)}}
+
+
+# ---------------------------------------------------------------------------------------------
+# Timing mode
+
+
+def description_with(desc_name: str, work: Path, max_tries: int | None) -> str:
+    """The description to use: ``desc_name`` itself, or a copy in ``work`` with
+    ``fit.max_tries_per_round`` replaced (returns its path)."""
+    if max_tries is None:
+        return desc_name
+    desc = load_description(desc_name)
+    data = yaml.safe_load(desc.text)
+    data.setdefault("fit", {})["max_tries_per_round"] = int(max_tries)
+    path = work / f"{desc.name}-max-tries-{max_tries}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return str(path)
+
+
+def _timed(fn: Callable[[], Any]) -> tuple[Any, float, float]:
+    """``fn()``, its wall time [s] and this process's CPU time [s]."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
+def power_law_exponent(samples: Sequence[float], seconds: Sequence[float]) -> float | None:
+    """Least-squares slope of ``log(seconds)`` over ``log(samples)`` (``None`` for < 2 points
+    or a non-positive value)."""
+    pts = [(n, s) for n, s in zip(samples, seconds, strict=True) if n > 0 and s > 0]
+    if len({n for n, _ in pts}) < 2:
+        return None
+    x = np.log([n for n, _ in pts])
+    y = np.log([s for _, s in pts])
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def _fit_percent(fig: Any) -> dict[str, float]:
+    return {n: float(v) for n, v in zip(fig.output_names, fig.fit_percent, strict=True)}
+
+
+def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str = "dvt",
+               fit_decimate: int | None = None, starts: int | None = None,
+               max_tries: int | None = None, scaling: Sequence[float] = (15.0, 30.0),
+               loop: bool = True, seed: int = 0, keep: Path | None = None,
+               log: Log = _quiet, verbose: bool = False) -> dict[str, Any]:
+    """Timing mode (module docstring); returns the figures.
+
+    Args:
+        seconds: length of the estimation (and validation) run [s].
+        rate_hz: sample rate [Hz].
+        description: description name or file.
+        fit_decimate, starts: overrides passed to :func:`dvt_identify.cli.run` (``None``: the
+            description's).
+        max_tries: override of ``fit.max_tries_per_round`` (``None``: the description's).
+        scaling: further run lengths [s] timed with the baseline only (shorter than ``seconds``).
+        loop: also time the augment loop.
+        seed: experiment and sensor-noise seed of the estimation run (validation: ``seed + 1``).
+        keep: copy bags and reports to this new directory.
+        log: progress lines.
+        verbose: let :func:`dvt_identify.cli.run` print its progress on stderr.
+    """
+    from dvt_identify.cli import load_segments, run
+    from dvt_identify.report import write_report
+
+    load_before = _load()
+    work = Path(tempfile.mkdtemp(prefix="dvt-bench-identify-"))
+    try:
+        desc_spec = description_with(description, work, max_tries)
+        desc = load_description(desc_spec)
+
+        def pair(secs: float) -> tuple[dict[str, Any], dict[str, Any]]:
+            tag = f"{secs:g}s"
+            log(f"simulating {secs:g} s estimation and validation runs at {rate_hz:g} Hz")
+            est = simulate_run(work / f"est-{tag}", secs, rate_hz, seed)
+            val = simulate_run(work / f"val-{tag}", secs, rate_hz, seed + 1)
+            return est, val
+
+        def identify(est: dict[str, Any], val: dict[str, Any], augment: bool, out: str
+                     ) -> tuple[Any, float, float]:
+            return _timed(lambda: run([est["path"]], [val["path"]], work / out, desc_spec,
+                                      augment=augment, starts=starts, fit_decimate=fit_decimate,
+                                      quiet=not verbose))
+
+        est, val = pair(seconds)
+        n = int(est["samples"])
+        log("timing: reading both bags")
+        _, read_s, read_cpu = _timed(lambda: load_segments([est["path"], val["path"]], desc))
+        log("timing: baseline (cli.run, augment=False)")
+        base, base_s, base_cpu = identify(est, val, False, "report-baseline")
+        log(f"baseline: {base_s:.2f} s")
+        log("timing: report writing alone")
+        _, report_s, _ = _timed(lambda: write_report(base, work / "report-again"))
+        cfg = base.config
+        out: dict[str, Any] = {
+            "mode": "timing",
+            "samples": n,
+            "baseline_seconds": base_s,
+            "loop_seconds": None,
+            "targets": {"baseline_seconds": TARGET_BASELINE_SECONDS,
+                        "loop_seconds": TARGET_LOOP_SECONDS},
+            "settings": {"description": desc.name, "fit_decimate": cfg.fit_decimate,
+                         "fit_samples": math.ceil(n / max(cfg.fit_decimate, 1)),
+                         "starts": cfg.starts, "refit_starts": cfg.refit_starts,
+                         "max_tries_per_round": cfg.max_tries_per_round,
+                         "max_effects": cfg.max_effects, "alpha": cfg.alpha,
+                         "min_validation_gain": cfg.min_validation_gain},
+            "recording": {"seconds": seconds, "rate_hz": rate_hz, "samples": n,
+                          "experiment": "ident (phases stretched)",
+                          "experiment_settings": est["experiment"]["settings"],
+                          "plant": "PlantSim, params physical, hidden none",
+                          "seeds": {"estimation": seed, "validation": seed + 1},
+                          "simulate_seconds": est["simulate_seconds"] + val["simulate_seconds"],
+                          "write_seconds": est["write_seconds"] + val["write_seconds"],
+                          "trips": est["trips"] + val["trips"],
+                          "nacks": est["nacks"] + val["nacks"],
+                          "gear_samples": est["gear_samples"]},
+            "breakdown": {"read_both_bags_seconds": read_s, "read_cpu_seconds": read_cpu,
+                          "baseline_cpu_seconds": base_cpu,
+                          "baseline_identify_seconds": base.seconds,
+                          "baseline_fit_seconds": base.baseline.fit.seconds_,
+                          "baseline_fit_starts": [
+                              {"cost": s.cost, "nfev": s.nfev, "note": s.note}
+                              for s in base.baseline.fit.starts_],
+                          "report_seconds": report_s},
+            "fit": {"baseline_validation_fit_percent": _fit_percent(base.baseline.val),
+                    "baseline_estimation_fit_percent": _fit_percent(base.baseline.est),
+                    "baseline_model_effects": [e.label() for e in base.baseline.effects]},
+        }
+        if loop:
+            log("timing: augment loop (cli.run, augment=True)")
+            res, loop_s, loop_cpu = identify(est, val, True, "report-loop")
+            log(f"loop: {loop_s:.2f} s")
+            out["loop_seconds"] = loop_s
+            out["breakdown"].update({"loop_cpu_seconds": loop_cpu,
+                                     "loop_identify_seconds": res.seconds,
+                                     "loop_refits": len(res.decisions),
+                                     "loop_rounds": len(res.rounds)})
+            out["fit"].update({
+                "loop_validation_fit_percent": _fit_percent(res.final.val),
+                "accepted": [d.score.label for d in res.accepted],
+                "decisions": [{"candidate": d.score.label, "accepted": d.accepted,
+                               "reason": d.reason} for d in res.decisions]})
+        points = []
+        for secs in sorted({float(s) for s in scaling if 0 < float(s) < seconds}):
+            e2, v2 = pair(secs)
+            log(f"timing: baseline on {secs:g} s")
+            r2, s2, c2 = identify(e2, v2, False, f"report-baseline-{secs:g}s")
+            points.append({"seconds": secs, "samples": int(e2["samples"]), "baseline_seconds": s2,
+                           "baseline_cpu_seconds": c2, "identify_seconds": r2.seconds,
+                           "fit_seconds": r2.baseline.fit.seconds_,
+                           "fit_nfev": sum(s.nfev for s in r2.baseline.fit.starts_)})
+        points.append({"seconds": seconds, "samples": n, "baseline_seconds": base_s,
+                       "baseline_cpu_seconds": base_cpu, "identify_seconds": base.seconds,
+                       "fit_seconds": base.baseline.fit.seconds_,
+                       "fit_nfev": sum(s.nfev for s in base.baseline.fit.starts_)})
+        out["scaling"] = points
+        ns = [p["samples"] for p in points]
+        out["scaling_exponent"] = power_law_exponent(ns, [p["baseline_seconds"] for p in points])
+        out["scaling_exponent_fit"] = power_law_exponent(ns, [p["fit_seconds"] for p in points])
+        out["scaling_note"] = ("each point is a separate run of the same experiment with its "
+                               "phases shortened in proportion; exponent = slope of log time "
+                               "over log samples (1 = linear)")
+        out["meets_targets"] = {
+            "baseline_seconds": base_s <= TARGET_BASELINE_SECONDS,
+            "loop_seconds": (None if out["loop_seconds"] is None
+                             else out["loop_seconds"] <= TARGET_LOOP_SECONDS)}
+        out["load_average"] = {"before": load_before, "after": _load()}
+        out["cpu_count"] = os.cpu_count()
+        out["blas_env"] = blas_env()
+        if keep is not None:
+            shutil.copytree(work, keep)
+            out["kept"] = str(keep)
+        return out
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Monte Carlo mode
+
+
+def mc_input(desc: Description, seconds: float, rate_hz: float, amplitude: float = 2.5,
+             clock: float = 0.03, seed: int = 0) -> Segment:
+    """A segment (outputs zero) with a PRBS of +-``amplitude`` (clock ``clock`` [s]) on every
+    input the structure's ``B`` uses (independent sequences), other inputs 0; shape (N, nu)
+    with ``N = round(seconds * rate_hz)``.
+
+    Raises:
+        BenchError: the structure uses no input, or the record is too short.
+    """
+    from dvt_driver.experiment_core import prbs_signal
+
+    n = round(seconds * rate_hz)
+    if n < 50:
+        raise BenchError(f"--mc-seconds/--mc-rate: {n} samples are too few (need >= 50)")
+    theta = np.array([p.initial for p in desc.structure.params], dtype=float)
+    _, B, _ = desc.structure.matrices(theta)
+    used = {name for j, name in enumerate(desc.input_names) if np.any(B[:, j] != 0.0)}
+    if not used:
+        raise BenchError(f"{desc.source}: the structure's B uses no input")
+    t = np.arange(n) / rate_hz
+    idx = np.floor(t / clock + 1e-9).astype(int)
+    u = np.zeros((n, len(desc.input_names)))
+    for j, name in enumerate(desc.input_names):
+        if name in used:
+            u[:, j] = amplitude * prbs_signal(int(idx[-1]) + 1, 8, seed, 100 + j)[idx]
+    return make_segment("monte-carlo", t, u, np.zeros((n, len(desc.output_names))),
+                        desc.input_names, desc.output_names)
+
+
+def output_sensitivity(model: OEModel, theta: Array, seg: Segment, x0: Array, scale: Array,
+                       rel_step: float = 1e-5) -> Array:
+    """Central-difference sensitivity of the simulated outputs divided by ``scale`` (ny,) to
+    the parameters and the initial state; shape (N * ny, p + nx), rows like ``y.ravel()``."""
+    cols = []
+
+    def sim(th: Array, x: Array) -> Array:
+        return np.asarray((model.simulate(th, seg, x) / scale).ravel())
+    for i in range(theta.size):
+        h = rel_step * max(abs(float(theta[i])), 1e-8)
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        cols.append((sim(tp, x0) - sim(tm, x0)) / (2 * h))
+    ys = model.simulate(theta, seg, x0)
+    for j in range(x0.size):
+        h = rel_step * max(float(np.std(ys[:, j])), 1e-8)
+        xp, xm = x0.copy(), x0.copy()
+        xp[j] += h
+        xm[j] -= h
+        cols.append((sim(theta, xp) - sim(theta, xm)) / (2 * h))
+    return np.column_stack(cols)
+
+
+def crlb_std(jac: Array, n_params: int) -> Array:
+    """Cramér-Rao standard deviations of the first ``n_params`` unknowns from the
+    noise-normalised sensitivity ``jac`` (m, q): ``sqrt(diag((J^T J)^-1))``, shape
+    (n_params,); the remaining unknowns (initial states) are nuisance parameters."""
+    fisher = jac.T @ jac
+    cov = np.linalg.pinv(fisher, rcond=1e-15, hermitian=True)
+    return np.asarray(np.sqrt(np.diag(cov)[:n_params]))
+
+
+_WORKER_DESC: dict[str, Description] = {}
+
+
+def _mc_one(job: tuple[str, int, int, Array, Array, Array, Array, int]) -> dict[str, Any]:
+    """One Monte Carlo run (in a worker process): noise, fit, estimates."""
+    desc_spec, seed, run, t, u, y_clean, sigma, starts = job
+    desc = _WORKER_DESC.get(desc_spec)
+    if desc is None:
+        desc = _WORKER_DESC.setdefault(desc_spec, load_description(desc_spec))
+    rng = np.random.default_rng([int(seed), int(run)])
+    y = y_clean + rng.standard_normal(y_clean.shape) * sigma
+    seg = make_segment(f"monte-carlo-{run}", t, u, y, desc.input_names, desc.output_names)
+    model = OEModel(desc.structure, ())
+    t0 = time.perf_counter()
+    try:
+        fit = OEFit(model, starts=starts, seed=int(seed) + run).fit([seg])
+    except FitError as exc:
+        return {"run": run, "error": str(exc)}
+    return {"run": run, "theta": fit.theta_.tolist(), "std": fit.std_.tolist(),
+            "x0": fit.x0_[0].tolist(), "cost": fit.cost_, "seconds": time.perf_counter() - t0,
+            "nfev": sum(s.nfev for s in fit.starts_)}
+
+
+def run_monte_carlo(runs: int = 50, seconds: float = 10.0, rate_hz: float = 500.0,
+                    noise: float = 0.05, workers: int = 2, seed: int = 0,
+                    description: str = "dvt", starts: int | None = None,
+                    log: Log = _quiet) -> dict[str, Any]:
+    """Monte Carlo mode (module docstring); returns the figures.
+
+    Args:
+        runs: number of simulated records N.
+        seconds, rate_hz: record length [s] and sample rate [Hz].
+        noise: output noise standard deviation as a fraction of each noise-free output's std.
+        workers: worker processes (1: in this process).
+        seed: seed of the input PRBS and of the noise (run r uses ``[seed, r]``).
+        description: description whose structure (no effects) is the true model.
+        starts: starts of each fit (``None``: the description's).
+        log: progress lines.
+
+    Raises:
+        BenchError: bad settings.
+    """
+    if runs < 2:
+        raise BenchError(f"--monte-carlo: expected N >= 2, got {runs}")
+    if not noise > 0:
+        raise BenchError(f"--noise: expected > 0, got {noise}")
+    t_start = time.perf_counter()
+    load_before = _load()
+    desc = load_description(description)
+    model = OEModel(desc.structure, ())
+    theta = model.initial()
+    nx = model.nx
+    x0 = np.zeros(nx)
+    seg = mc_input(desc, seconds, rate_hz, seed=seed)
+    y_clean = model.simulate(theta, seg, x0)
+    sigma = noise * np.std(y_clean, axis=0)
+    if not np.all(sigma > 0):
+        raise BenchError(f"{desc.source}: an output does not move under the PRBS input "
+                         f"(std {np.std(y_clean, axis=0).tolist()})")
+    jac = output_sensitivity(model, theta, replace(seg, y=y_clean), x0, sigma)
+    bound = crlb_std(jac, theta.size)
+    n_starts = desc.fit.starts if starts is None else max(1, int(starts))
+    jobs = [(description, seed, r, seg.t, seg.u, y_clean, sigma, n_starts) for r in range(runs)]
+    log(f"Monte Carlo: {runs} runs of {seg.n} samples, {workers} worker(s)")
+    results: list[dict[str, Any]] = []
+    if workers > 1:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for i, res in enumerate(pool.map(_mc_one, jobs)):
+                results.append(res)
+                if (i + 1) % 10 == 0:
+                    log(f"  {i + 1}/{runs} runs done")
+    else:
+        for i, job in enumerate(jobs):
+            results.append(_mc_one(job))
+            if (i + 1) % 10 == 0:
+                log(f"  {i + 1}/{runs} runs done")
+    ok = [r for r in results if "theta" in r]
+    failed = [{"run": r["run"], "error": r["error"]} for r in results if "theta" not in r]
+    names = list(model.names)
+    params: dict[str, dict[str, Any]] = {}
+    if ok:
+        est = np.array([r["theta"] for r in ok])
+        rep = np.array([r["std"] for r in ok])
+        mean = est.mean(axis=0)
+        std = est.std(axis=0, ddof=1) if len(ok) > 1 else np.full(theta.size, math.nan)
+        inside = np.abs(est - theta) <= 1.96 * rep
+        for i, name in enumerate(names):
+            params[name] = {
+                "true": float(theta[i]), "mean": float(mean[i]), "std": float(std[i]),
+                "crlb_std": float(bound[i]), "crlb_ratio": float(std[i] / bound[i]),
+                "bias": float(mean[i] - theta[i]),
+                "bias_over_crlb": float((mean[i] - theta[i]) / bound[i]),
+                "reported_std_mean": float(rep[:, i].mean()),
+                "reported_over_crlb": float(rep[:, i].mean() / bound[i]),
+                "coverage_95": float(inside[:, i].mean()),
+                "unit": desc.structure.params[i].unit}
+    ratios = [p["crlb_ratio"] for p in params.values()]
+    covs = [p["coverage_95"] for p in params.values()]
+    max_ratio = max(ratios) if ratios else math.nan
+    mean_cov = float(np.mean(covs)) if covs else math.nan
+    n_ok = len(ok)
+    return {
+        "mode": "monte_carlo",
+        "runs": runs,
+        "runs_ok": n_ok,
+        "failed": failed,
+        "seed": seed,
+        "workers": workers,
+        "blas_env": blas_env(),
+        "model": {"description": desc.name,
+                  "structure": f"{type(desc.structure).__name__} "
+                               f"({', '.join(names)}), no effects",
+                  "x0_true": x0.tolist(), "starts": n_starts},
+        "record": {"seconds": seconds, "rate_hz": rate_hz, "samples": seg.n,
+                   "input": "PRBS +-2.5 (input unit), clock 0.03 s, order 8, on "
+                            + ", ".join(n for j, n in enumerate(desc.input_names)
+                                        if np.any(seg.u[:, j])) + "; other inputs 0",
+                   "noise_fraction": noise,
+                   "noise_sigma": dict(zip(desc.output_names, sigma.tolist(), strict=True)),
+                   "output_std_noise_free": dict(zip(desc.output_names,
+                                                     np.std(y_clean, axis=0).tolist(),
+                                                     strict=True))},
+        "parameters": params,
+        "max_crlb_ratio": max_ratio,
+        "mean_coverage_95": mean_cov,
+        "min_coverage_95": min(covs) if covs else math.nan,
+        "max_coverage_95": max(covs) if covs else math.nan,
+        "sampling_uncertainty": {
+            "crlb_ratio_relative_se": 1.0 / math.sqrt(2.0 * max(n_ok - 1, 1)),
+            "coverage_se_per_parameter": math.sqrt(0.95 * 0.05 / max(n_ok, 1))},
+        "targets": {"crlb_ratio_max": TARGET_CRLB_RATIO, "coverage_95": list(TARGET_COVERAGE)},
+        "meets_targets": {
+            "crlb_ratio": bool(max_ratio <= TARGET_CRLB_RATIO),
+            "coverage_95": bool(TARGET_COVERAGE[0] <= mean_cov <= TARGET_COVERAGE[1])},
+        "fit_seconds_mean": float(np.mean([r["seconds"] for r in ok])) if ok else math.nan,
+        "fit_nfev_mean": float(np.mean([r["nfev"] for r in ok])) if ok else math.nan,
+        "wall_seconds": time.perf_counter() - t_start,
+        "load_average": {"before": load_before, "after": _load()},
+        "cpu_count": os.cpu_count(),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+
+
+def _finite(obj: Any) -> Any:
+    """``obj`` with non-finite floats replaced by ``None`` (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _num(v: Any, fmt: str = ".4g") -> str:
+    return "-" if v is None else format(v, fmt) if isinstance(v, float) else str(v)
+
+
+def pretty(res: dict[str, Any]) -> str:
+    """Human-readable text of a result of :func:`run_timing` or :func:`run_monte_carlo`."""
+    lines: list[str] = []
+    if res.get("mode") == "monte_carlo":
+        rec = res["record"]
+        lines.append(f"Monte Carlo: {res['runs_ok']}/{res['runs']} runs, {rec['samples']} "
+                     f"samples each ({rec['seconds']:g} s at {rec['rate_hz']:g} Hz), noise "
+                     f"{rec['noise_fraction']:g} x std, seed {res['seed']}")
+        lines.append(f"{'param':8s} {'true':>12s} {'mean':>12s} {'std':>10s} {'crlb_std':>10s} "
+                     f"{'ratio':>6s} {'bias/crlb':>9s} {'rep/crlb':>8s} {'cov95':>6s}")
+        for name, p in res["parameters"].items():
+            lines.append(f"{name:8s} {p['true']:12.5g} {p['mean']:12.5g} {p['std']:10.3g} "
+                         f"{p['crlb_std']:10.3g} {p['crlb_ratio']:6.3f} "
+                         f"{p['bias_over_crlb']:9.3f} {p['reported_over_crlb']:8.3f} "
+                         f"{p['coverage_95']:6.3f}")
+        su = res["sampling_uncertainty"]
+        lines.append(f"max crlb_ratio {_num(res['max_crlb_ratio'])} (target <= "
+                     f"{TARGET_CRLB_RATIO}; +-{100 * su['crlb_ratio_relative_se']:.0f} % "
+                     f"sampling), mean coverage_95 {_num(res['mean_coverage_95'])} (target "
+                     f"{TARGET_COVERAGE[0]}-{TARGET_COVERAGE[1]}; +-"
+                     f"{su['coverage_se_per_parameter']:.3f} per parameter)")
+        lines.append(f"failed runs {len(res['failed'])}, fit {res['fit_seconds_mean']:.2f} s "
+                     f"mean, wall {res['wall_seconds']:.1f} s with {res['workers']} worker(s)")
+        return "\n".join(lines)
+    st = res["settings"]
+    lines.append(f"recording: {res['samples']} samples ({res['recording']['seconds']:g} s at "
+                 f"{res['recording']['rate_hz']:g} Hz), description {st['description']}, "
+                 f"fit_decimate {st['fit_decimate']}, starts {st['starts']}, "
+                 f"max_tries_per_round {st['max_tries_per_round']}")
+    lines.append(f"baseline_seconds {_num(res['baseline_seconds'], '.2f')} (target <= "
+                 f"{TARGET_BASELINE_SECONDS:g})   loop_seconds "
+                 f"{_num(res['loop_seconds'], '.2f')} (target <= {TARGET_LOOP_SECONDS:g})")
+    for k, v in res["breakdown"].items():
+        if not isinstance(v, list):
+            lines.append(f"  {k:28s} {_num(v)}")
+    for k, v in res["fit"].items():
+        if k != "decisions":
+            lines.append(f"  {k:34s} {v}")
+    for p in res["scaling"]:
+        lines.append(f"  scaling: {p['samples']:7d} samples  baseline {p['baseline_seconds']:.2f} s"
+                     f"  fit {p['fit_seconds']:.2f} s  ({p['fit_nfev']} evaluations)")
+    lines.append(f"scaling exponent {_num(res['scaling_exponent'], '.2f')} (end to end), "
+                 f"{_num(res['scaling_exponent_fit'], '.2f')} (fit alone); load average "
+                 f"{res['load_average']['before']} -> {res['load_average']['after']}")
+    return "\n".join(lines)
+
+
+def _seconds_list(text: str) -> list[float]:
+    if not text.strip() or text.strip().lower() == "none":
+        return []
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected seconds like 15,30, got {text!r}") from exc
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``dvt-bench identify`` (argv without the ``identify`` word); returns the exit status."""
+    p = argparse.ArgumentParser(prog="dvt-bench identify",
+                                description="identifier speed (default) or statistics "
+                                            "(--monte-carlo); prints what it measured")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--description", default="dvt", help="description name or file (dvt)")
+    p.add_argument("--seed", type=int, default=0, help="seed of runs / Monte Carlo (0)")
+    p.add_argument("--verbose", action="store_true", help="progress of every step on stderr")
+    g = p.add_argument_group("timing mode")
+    g.add_argument("--seconds", type=float, default=60.0, help="recording length [s] (60)")
+    g.add_argument("--rate", type=float, default=1000.0, help="sample rate [Hz] (1000)")
+    g.add_argument("--scaling", type=_seconds_list, default=[15.0, 30.0],
+                   help="shorter run lengths [s] for the scaling figure, e.g. 15,30 "
+                        "(none: skip)")
+    g.add_argument("--fit-decimate", type=int, default=None,
+                   help="override the description's fit_decimate")
+    g.add_argument("--starts", type=int, default=None, help="override the baseline starts")
+    g.add_argument("--max-tries", type=int, default=None,
+                   help="override the description's fit.max_tries_per_round")
+    g.add_argument("--no-loop", action="store_true", help="skip the augment loop")
+    g.add_argument("--keep", default=None, help="copy bags and reports to this new directory")
+    m = p.add_argument_group("Monte Carlo mode")
+    m.add_argument("--monte-carlo", type=int, nargs="?", const=50, default=None, metavar="N",
+                   help="run N simulated fits (default N 50)")
+    m.add_argument("--mc-seconds", type=float, default=10.0, help="record length [s] (10)")
+    m.add_argument("--mc-rate", type=float, default=500.0, help="sample rate [Hz] (500)")
+    m.add_argument("--noise", type=float, default=0.05,
+                   help="output noise std as a fraction of the output's std (0.05)")
+    m.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                   help="worker processes (2)")
+    args = p.parse_args(list(sys.argv[1:] if argv is None else argv))
+    if args.seed < 0:
+        p.error(f"--seed: expected >= 0, got {args.seed}")
+    if not 1.0 <= args.rate <= 2000.0:
+        p.error(f"--rate: expected 1..2000 Hz, got {args.rate}")
+    if args.keep is not None and Path(args.keep).exists():
+        p.error(f"--keep: {args.keep} already exists")
+    for opt in ("fit_decimate", "starts", "max_tries"):
+        v = getattr(args, opt)
+        if v is not None and v < 1:
+            p.error(f"--{opt.replace('_', '-')}: expected >= 1, got {v}")
+    if args.workers < 1:
+        p.error(f"--workers: expected >= 1, got {args.workers}")
+    log = _quiet if args.json and not args.verbose else _stderr
+    try:
+        if args.monte_carlo is not None:
+            res = run_monte_carlo(args.monte_carlo, args.mc_seconds, args.mc_rate, args.noise,
+                                  args.workers, args.seed, args.description, args.starts, log)
+        else:
+            res = run_timing(args.seconds, args.rate, args.description, args.fit_decimate,
+                             args.starts, args.max_tries, args.scaling, not args.no_loop,
+                             args.seed, Path(args.keep) if args.keep else None, log,
+                             args.verbose)
+    except (DvtIdentifyError, DvtDriverError, DvtModelError, OSError) as exc:
+        print(f"dvt-bench identify: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    res = _finite(res)
+    print(json.dumps(res) if args.json else pretty(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,93 @@
+"""Smoke tests of ``dvt-bench identify`` (tiny runs: keys and finite values, not the targets)."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from dvt_identify import bench_identify as bi
+from dvt_identify.bench import main as bench_main
+
+
+def _all_finite(obj: Any, where: str = "") -> None:
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _all_finite(v, f"{where}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            _all_finite(v, f"{where}[{i}]")
+    elif isinstance(obj, float):
+        assert math.isfinite(obj), where
+
+
+def test_power_law_exponent_recovers_the_slope() -> None:
+    n = [1000.0, 2000.0, 4000.0]
+    assert bi.power_law_exponent(n, [0.5 * v for v in n]) == pytest.approx(1.0)
+    assert bi.power_law_exponent(n, [1e-6 * v ** 2 for v in n]) == pytest.approx(2.0)
+    assert bi.power_law_exponent([1000.0], [1.0]) is None
+
+
+def test_crlb_of_a_straight_line_is_sigma_over_the_regressor_norm() -> None:
+    # y = a x + noise(sigma): var(a_hat) = sigma^2 / sum(x^2), the bound of the LS estimate
+    x = np.linspace(-1.0, 2.0, 50)
+    sigma = 0.3
+    jac = (x / sigma)[:, None]
+    assert bi.crlb_std(jac, 1)[0] == pytest.approx(sigma / np.linalg.norm(x), rel=1e-9)
+
+
+def test_monte_carlo_smoke(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = bench_main(["identify", "--monte-carlo", "4", "--mc-seconds", "2", "--mc-rate", "200",
+                     "--workers", "2", "--json"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["runs"] == 4 and res["runs_ok"] == 4 and res["failed"] == []
+    assert res["record"]["samples"] == 400
+    assert set(res["parameters"]) == {"M11", "M12", "M22", "D11", "D12", "D22"}
+    for p in res["parameters"].values():
+        assert {"true", "mean", "std", "crlb_std", "crlb_ratio", "bias",
+                "coverage_95"} <= set(p)
+        assert p["crlb_std"] > 0 and p["std"] > 0
+        assert 0.0 <= p["coverage_95"] <= 1.0
+    for key in ("max_crlb_ratio", "mean_coverage_95", "seed", "wall_seconds"):
+        assert key in res
+    _all_finite(res)
+
+
+def test_timing_smoke(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = bench_main(["identify", "--seconds", "3", "--scaling", "2.5", "--fit-decimate", "2",
+                     "--starts", "1", "--max-tries", "1", "--json"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["samples"] == 3000
+    assert res["baseline_seconds"] > 0 and res["loop_seconds"] > 0
+    assert res["settings"]["fit_decimate"] == 2 and res["settings"]["starts"] == 1
+    assert res["settings"]["max_tries_per_round"] == 1
+    assert res["recording"]["trips"] == 0
+    assert [p["samples"] for p in res["scaling"]] == [2500, 3000]
+    assert all(p["baseline_seconds"] > 0 for p in res["scaling"])
+    assert res["scaling_exponent"] is not None
+    for key in ("breakdown", "fit", "meets_targets", "targets"):
+        assert key in res
+    _all_finite(res)
+
+
+def test_pretty_output_of_the_monte_carlo(capsys: pytest.CaptureFixture[str]) -> None:
+    assert bi.main(["--monte-carlo", "2", "--mc-seconds", "1", "--mc-rate", "100",
+                    "--workers", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "crlb_ratio" in out and "M11" in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--monte-carlo", "1"], "--monte-carlo: expected N >= 2, got 1"),
+    (["--seconds", "1"], "--seconds: expected more than 1.5 s, got 1.0"),
+    (["--monte-carlo", "3", "--noise", "0"], "--noise: expected > 0, got 0.0"),
+])
+def test_bad_settings_exit_2_with_a_message(argv: list[str], message: str,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    assert bi.main(argv) == 2
+    assert message in capsys.readouterr().err
