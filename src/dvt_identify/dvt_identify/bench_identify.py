@@ -70,7 +70,9 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from dvt_driver import experiment_core as ec
 from dvt_driver.errors import DvtDriverError
+from dvt_driver.experiment_core import Experiment
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import Description, load_description
 from dvt_identify.errors import DvtIdentifyError, FitError
@@ -126,14 +128,12 @@ def _load() -> list[float]:
 # Simulated recordings
 
 
-def ident_experiment(seconds: float, seed: int) -> Any:
+def ident_experiment(seconds: float, seed: int) -> Experiment:
     """The ``ident`` experiment with every phase stretched so that it lasts ``seconds`` [s].
 
     Raises:
         BenchError: ``seconds`` too short for the stop phase.
     """
-    from dvt_driver import experiment_core as ec
-
     factor = (seconds - _IDENT_STOP) / _IDENT_STRETCH
     if not factor > 0:
         raise BenchError(f"--seconds: expected more than {_IDENT_STOP} s, got {seconds}")
