@@ -56,6 +56,7 @@ def test_clean_plant_accepts_nothing(tmp_path):
     # has: a friction term on the right member must be found
     ("ident-stribeck", {"coulomb_friction", "stribeck_friction"}),
     ("ident-delay", {"measurement_delay"}),
+    ("ident-windage", {"windage"}),
 ])
 def test_hidden_effect_is_ranked_first_and_accepted(bag, expected, tmp_path):
     r = _identify(bag, tmp_path)
