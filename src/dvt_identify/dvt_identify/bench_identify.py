@@ -46,8 +46,8 @@ Targets (from the issue): ``baseline_seconds <= 2``, ``loop_seconds <= 30``,
 uncertain by about ``1/sqrt(2 (N - 1))`` (10 % at N = 50) and a coverage by
 ``sqrt(0.95 * 0.05 / N)`` (3 points at N = 50); both are printed.
 
-Wall times depend on the machine's load: the load average before and after, and the process
-CPU time of every timed step, are printed too.
+Wall times depend on the machine's load: the load average before and after, and this process's
+CPU time of the bag reading, the baseline and the loop, are printed too.
 """
 
 from __future__ import annotations

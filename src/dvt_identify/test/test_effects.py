@@ -129,7 +129,14 @@ def test_make_effect_errors_and_vocabulary() -> None:
     with pytest.raises(DescriptionError, match="not a state/output"):
         make_effect("windage", "force", STATES, INPUTS)
     with pytest.raises(DescriptionError, match="not an input"):
-        make_effect("backlash", "v", STATES, INPUTS)
+        make_effect("backlash", "nowhere", STATES, INPUTS)
+    # backlash at a state is lost motion between the member and its sensor (output side)
+    lost = make_effect("backlash", "v", STATES, INPUTS)
+    y = np.column_stack([np.r_[np.ones(50), -np.ones(50)]])
+    out = lost.output_transform(np.array([0.01]), y, 1e-3)
+    assert out is not None
+    # after the reversal the sensed shaft stands still while crossing the 2 x 0.01 gap (20 ms)
+    assert np.allclose(out[52:68, 0], 0.0) and out[80, 0] == pytest.approx(-1.0)
     with pytest.raises(DescriptionError, match="orders"):
         make_effect("periodic_disturbance", "v", STATES, INPUTS)
     c = make_effect("coulomb_friction", "v", STATES, INPUTS, suffix="_v")
