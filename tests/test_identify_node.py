@@ -88,9 +88,8 @@ def test_refit_and_push_shrinks_live_residual(procs, rclpy_context, tmp_path):
     truth = HybridModel.from_params(load_parameters("physical")).rigid.M
     assert np.allclose(np.reshape(M, (2, 2)), truth, rtol=0.05), (M, truth)
     after = _residual_rms(listener, procs, val)
-    # identified M, D are within ~0.5 % of the plant: the free-run residual returns to a few
-    # times the noise (offline the same model gives 0.85 and 0.25 rad/s on this run)
-    assert np.all(after < 6 * NOISE), after
-    assert np.all(after < 0.3 * before)
+    # the refitted model (fitted at the description's 200 Hz, M within a few % of the plant)
+    # runs free over the whole validation run: its residual is a small fraction of the prior's
+    assert np.all(after < 0.2 * before), (before, after)
     wait_for(lambda: (tmp_path / "reports" / "run-001" / "report.json").exists(), 5.0,
              "report.json")
