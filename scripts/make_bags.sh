@@ -21,12 +21,10 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 MAX_MISSING="${MAX_MISSING:-25}"
 LIMIT_BYTES=$((30 * 1000 * 1000))
 
-# The thesis holds the sun at 1500, 1600, 2000 and 2400 rpm. The driver trips on a measured sun
-# speed above max_sun_speed (2400 rpm, also the largest set-point it accepts), and the drive's
-# speed loop rides up to ~10 rpm above its set-point (encoder quantisation, the overshoot when
-# band 1 releases), so a 2400 rpm hold trips the driver. Until the driver's trip has a margin
-# above the set-point limit, the replica's top speed is THESIS_TOP_RPM (default 2380 rpm).
-THESIS_TOP_RPM="${THESIS_TOP_RPM:-2380}"
+# The thesis holds the sun at 1500, 1600, 2000 and 2400 rpm. The drive's speed loop rides up to
+# ~10 rpm above its set-point (encoder quantisation, the overshoot when band 1 releases); the
+# driver trips 2 % above max_sun_speed, so a 2400 rpm hold is fine. THESIS_TOP_RPM overrides it.
+THESIS_TOP_RPM="${THESIS_TOP_RPM:-2400}"
 
 # name | dvt-launch sim arguments (the bags/README.md table lists the same)
 RUNS=(
