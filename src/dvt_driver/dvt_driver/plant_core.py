@@ -276,6 +276,23 @@ class PlantSim:
         PlantError: a setting is out of range.
     """
 
+    # controller state, (re)set by _clear_controller
+    seq: int
+    t_us: int
+    session_open: bool
+    _mode: Mode
+    _setpoint: float
+    _brake_cmd: NDArray[np.float64]
+    _integ: float
+    _i_ref: float
+    _last_cmd_us: int
+    _armed: bool
+    _watchdog: bool
+    _fault: bool
+    _overspeed: bool
+    _clamped: bool
+    _w_enc: float
+
     def __init__(self, params: TransmissionParams, hidden: HiddenEffects | None = None,
                  sample_period_us: int = DEFAULT_SAMPLE_PERIOD_US, seed: int | None = None, *,
                  limits: SafetyLimits | None = None, sensors: SensorConfig | None = None,
@@ -328,21 +345,7 @@ class PlantSim:
         self._period_us = 0
         self._n_sub = 1
         self._h = 0.0
-        self.seq = 0
-        self.t_us = 0
-        self.session_open = False
-        self._mode = Mode.OFF
-        self._setpoint = 0.0
-        self._brake_cmd = np.zeros(3)
-        self._integ = 0.0
-        self._i_ref = 0.0
-        self._last_cmd_us = 0
-        self._armed = False
-        self._watchdog = False
-        self._fault = False
-        self._overspeed = False
-        self._clamped = False
-        self._w_enc = 0.0
+        self._clear_controller()
         self._ctrl_counts: deque[int] = deque(maxlen=2)
         self._last_sample_theta = 0.0
         self._hist_theta: deque[float] = deque(maxlen=1)
@@ -501,13 +504,17 @@ class PlantSim:
         """Controller reset (firmware restart): sequence and clock restart at 0, outputs off
         (motor and brake coils de-energised at boot), faults, watchdog and session cleared, so
         streaming stops until the next HELLO. The transmission keeps turning."""
+        self._clear_controller()
+        self._i_brake = np.zeros(3)
+
+    def _clear_controller(self) -> None:
+        """Controller state at power-up: clock, sequence, session, outputs, loops, flags."""
         self.seq = 0
         self.t_us = 0
         self.session_open = False
         self._mode = Mode.OFF
         self._setpoint = 0.0
         self._brake_cmd = np.zeros(3)
-        self._i_brake = np.zeros(3)
         self._integ = 0.0
         self._i_ref = 0.0
         self._last_cmd_us = 0

@@ -227,7 +227,8 @@ def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries
     Raises:
         DataError: the path exists, or a series has inconsistent shapes.
     """
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from dvt_model.bagio import joint_state_cdr, write_bag
+    from dvt_model.errors import BagError
 
     out = Path(path)
     if out.exists():
@@ -237,10 +238,6 @@ def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries
             raise DataError(f"{out}: output bag already exists"
                             + ("" if overwrite else " (pass --force to replace it)")
                             + ("" if not overwrite else " and is not a bag directory"))
-    ts = _typestore()
-    JS = ts.types[JOINT_STATE]
-    Header = ts.types["std_msgs/msg/Header"]
-    Time = ts.types["builtin_interfaces/msg/Time"]
     for topic, ser in topics.items():
         n = ser.stamps_ns.shape[0]
         for fname in FIELDS:
@@ -248,26 +245,19 @@ def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries
             if arr is not None and arr.shape != (n, len(ser.names)):
                 raise DataError(f"{out}: topic {topic}: {fname}: expected shape "
                                 f"{(n, len(ser.names))}, got {arr.shape}")
-    events: list[tuple[int, int, str, int]] = []
-    for ti, (topic, ser) in enumerate(topics.items()):
-        events.extend((int(s), ti, topic, i) for i, s in enumerate(ser.stamps_ns))
-    events.sort()
-    empty = np.zeros(0, dtype=np.float64)
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {topic: writer.add_connection(topic, JOINT_STATE, typestore=ts)
-                 for topic in topics}
-        for stamp, _, topic, i in events:
-            ser = topics[topic]
-            msg = JS(
-                header=Header(stamp=Time(sec=stamp // 1_000_000_000,
-                                         nanosec=stamp % 1_000_000_000), frame_id=""),
-                name=list(ser.names),
-                position=empty if ser.position is None else ser.position[i].copy(),
-                velocity=empty if ser.velocity is None else ser.velocity[i].copy(),
-                effort=empty if ser.effort is None else ser.effort[i].copy(),
-            )
-            writer.write(conns[topic], stamp, ts.serialize_cdr(msg, JOINT_STATE))
-    return out
+    streams = [
+        (topic, JOINT_STATE,
+         [(int(stamp), joint_state_cdr(
+             int(stamp), ser.names,
+             position=None if ser.position is None else ser.position[i],
+             velocity=None if ser.velocity is None else ser.velocity[i],
+             effort=None if ser.effort is None else ser.effort[i]))
+          for i, stamp in enumerate(ser.stamps_ns)])
+        for topic, ser in topics.items()]
+    try:
+        return write_bag(out, streams)
+    except BagError as exc:
+        raise DataError(str(exc)) from exc
 
 
 # --------------------------------------------------------------------------------------------

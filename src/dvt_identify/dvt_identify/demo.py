@@ -61,50 +61,15 @@ def model_replay(out: Path) -> dict[str, Any]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import JointState
-
-    from dvt_model import rosutil
-    from dvt_model.bagio import read_run
-
     bag = simulated_bag(out / "simulated_run")
     _log(f"simulated run written to {bag}")
-    node = subprocess.Popen([str(BIN / "dvt_model_node")], start_new_session=True)
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")))
-    listener = rclpy.create_node("dvt_demo_listener", context=ctx)
-    exe = SingleThreadedExecutor(context=ctx)
-    exe.add_node(listener)
-    pred: dict[int, list[float]] = {}
-    def on_pred(m: JointState) -> None:
-        pred[rosutil.stamp_to_ns(m.header.stamp)] = list(m.velocity)
-
-    listener.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, on_pred,
-                                 rosutil.SENSOR_QOS)
+    live = _Live(out, params="physical", identifier=False)
     try:
-        deadline = time.monotonic() + 30
-        while listener.count_publishers(rosutil.MODEL_JOINT_STATES) < 1:
-            exe.spin_once(timeout_sec=0.05)
-            if time.monotonic() > deadline:
-                raise RuntimeError("model node did not start within 30 s")
-        replay = subprocess.Popen([str(BIN / "dvt-replay"), str(bag), "--wait-subscribers", "1"])
-        while replay.poll() is None:
-            exe.spin_once(timeout_sec=0.05)
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            exe.spin_once(timeout_sec=0.05)
+        pred = live.replay(bag)
     finally:
-        node.send_signal(signal.SIGINT)
-        node.wait(timeout=10)
-        listener.destroy_node()
-        rclpy.shutdown(context=ctx)
-    run = read_run(bag)
-    idx = np.array([k for k, s in enumerate(run.stamps_ns) if int(s) in pred])
-    yhat = np.array([pred[int(run.stamps_ns[k])] for k in idx])
-    y = run.speeds[idx]
-    t = run.t[idx]
+        live.close()
+    run, idx, yhat = _aligned(bag, pred)
+    t, y = run.t[idx], run.speeds[idx]
     rms = np.sqrt(np.mean((y - yhat) ** 2, axis=0))
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
     for ax, j, name in ((axes[0], 0, "sun shaft"), (axes[1], 1, "carrier 3")):
@@ -152,7 +117,7 @@ def _launch_record(out: Path, name: str, seed: int, hidden: str) -> Path:
 class _Live:
     """Model node + identifier node + a listener, for the closed-loop stage."""
 
-    def __init__(self, out: Path) -> None:
+    def __init__(self, out: Path, params: str = "thesis", identifier: bool = True) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -163,11 +128,12 @@ class _Live:
         from dvt_model import rosutil
 
         self.procs = [
-            subprocess.Popen([str(BIN / "dvt_model_node"), "--ros-args", "-p", "params:=thesis"],
-                             start_new_session=True),
-            subprocess.Popen([str(BIN / "dvt_identify_node"), "--ros-args", "-p",
-                              f"output_dir:={out / 'identify'}"], start_new_session=True),
-        ]
+            subprocess.Popen([str(BIN / "dvt_model_node"), "--ros-args", "-p",
+                              f"params:={params}"], start_new_session=True)]
+        if identifier:
+            self.procs.append(subprocess.Popen(
+                [str(BIN / "dvt_identify_node"), "--ros-args", "-p",
+                 f"output_dir:={out / 'identify'}"], start_new_session=True))
         self.ctx = Context()
         rclpy.init(context=self.ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")))
         self.node = rclpy.create_node("dvt_demo", context=self.ctx)
@@ -189,7 +155,8 @@ class _Live:
             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.request = self.node.create_publisher(String, "/dvt/identify/request", 10)
         self.until(lambda: self.node.count_publishers(rosutil.MODEL_JOINT_STATES) > 0
-                   and self.request.get_subscription_count() > 0, 60.0, "nodes to start")
+                   and (not identifier or self.request.get_subscription_count() > 0),
+                   60.0, "nodes to start")
 
     def until(self, pred: Any, timeout: float, what: str) -> None:
         deadline = time.monotonic() + timeout
@@ -231,12 +198,19 @@ class _Live:
         rclpy.shutdown(context=self.ctx)
 
 
-def _residuals(bag: Path, pred: dict[int, list[float]]) -> tuple[Any, Any, Any, Any]:
+def _aligned(bag: Path, pred: dict[int, list[float]]) -> tuple[Any, Any, Any]:
+    """The recorded run, the indices of its samples that were predicted, the predictions."""
     from dvt_model.bagio import read_run
 
     run = read_run(bag)
     idx = np.array([k for k, s in enumerate(run.stamps_ns) if int(s) in pred])
     yhat = np.array([pred[int(run.stamps_ns[k])] for k in idx])
+    return run, idx, yhat
+
+
+def _residuals(bag: Path, pred: dict[int, list[float]]) -> tuple[Any, Any, Any, Any]:
+    """Time [s], measured, predicted and residual speeds of the predicted samples."""
+    run, idx, yhat = _aligned(bag, pred)
     return run.t[idx], run.speeds[idx], yhat, run.speeds[idx] - yhat
 
 

@@ -186,6 +186,14 @@ class LinearStructureBase:
     force_unit: str = ""
     speed_unit: str = ""
 
+    def _init_names(self, state_names: Sequence[str], input_names: Sequence[str],
+                    parameters: dict[str, Any], what: str) -> tuple[list[str], int, int]:
+        """Set names and parameter specs; return (parameter names, nx, nu)."""
+        self.state_names = tuple(state_names)
+        self.input_names = tuple(input_names)
+        self.params = _param_specs(parameters, what)
+        return [p.name for p in self.params], len(self.state_names), len(self.input_names)
+
     def matrices(self, theta: Array) -> tuple[Array, Array, Array]:  # pragma: no cover
         raise NotImplementedError
 
@@ -245,11 +253,7 @@ class StateSpaceStructure(LinearStructureBase):
     def __init__(self, state_names: Sequence[str], input_names: Sequence[str], A: object,
                  B: object, parameters: dict[str, Any], force_map: object | None = None,
                  force_unit: str = "", speed_unit: str = "", what: str = "structure") -> None:
-        self.state_names = tuple(state_names)
-        self.input_names = tuple(input_names)
-        self.params = _param_specs(parameters, what)
-        names = [p.name for p in self.params]
-        nx, nu = len(self.state_names), len(self.input_names)
+        names, nx, nu = self._init_names(state_names, input_names, parameters, what)
         self._A = ParamMatrix(A, f"{what}.A", names, (nx, nx))
         self._B = ParamMatrix(B, f"{what}.B", names, (nx, nu))
         self._F = None if force_map is None else ParamMatrix(force_map, f"{what}.force_map",
@@ -275,11 +279,7 @@ class MechanicalStructure(LinearStructureBase):
     def __init__(self, state_names: Sequence[str], input_names: Sequence[str], mass: object,
                  damping: object, input_matrix: object, parameters: dict[str, Any],
                  force_unit: str = "", speed_unit: str = "", what: str = "structure") -> None:
-        self.state_names = tuple(state_names)
-        self.input_names = tuple(input_names)
-        self.params = _param_specs(parameters, what)
-        names = [p.name for p in self.params]
-        nx, nu = len(self.state_names), len(self.input_names)
+        names, nx, nu = self._init_names(state_names, input_names, parameters, what)
         self._M = ParamMatrix(mass, f"{what}.mass", names, (nx, nx))
         self._D = ParamMatrix(damping, f"{what}.damping", names, (nx, nx))
         self._Q = ParamMatrix(input_matrix, f"{what}.input_matrix", names, (nx, nu))

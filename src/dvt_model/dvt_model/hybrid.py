@@ -26,7 +26,7 @@ effects), evaluated at the step start and held over the step.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -380,4 +380,4 @@ def _with(locked: LockSet, k: int, value: bool) -> LockSet:
     return (items[0], items[1], items[2])
 
 
-__all__ = ["HybridModel", "HybridState", "SimulationResult", "replace"]
+__all__ = ["HybridModel", "HybridState", "SimulationResult"]
