@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
 
 from dvt_identify.errors import DescriptionError
+from dvt_identify.simloop import ABS_VISCOUS, STRIBECK, WINDAGE, smooth_value
 
 Array = NDArray[np.float64]
 
@@ -116,9 +117,22 @@ class Effect:
         """Member force known before simulation, shape (N,), or ``None``."""
         return None
 
-    def smooth_force(self, p: Array) -> Callable[[float], float] | None:
-        """``tau = g(s)`` for member speed ``s``, or ``None``."""
+    def smooth_law(self, p: Array) -> tuple[int, float, float] | None:
+        """A coded smooth member force ``(kind, p0, p1)`` (:mod:`dvt_identify.simloop`; the
+        simulation compiles these), or ``None``."""
         return None
+
+    def smooth_force(self, p: Array) -> Callable[[float], float] | None:
+        """``tau = g(s)`` for member speed ``s``, or ``None`` (default: the coded law as a
+        Python function; override only for a law that has no code)."""
+        law = self.smooth_law(p)
+        if law is None:
+            return None
+        kind, p0, p1 = law
+
+        def g(s: float) -> float:
+            return float(smooth_value(kind, p0, p1, s))
+        return g
 
     def dry_capacity(self, p: Array, seg: SegmentView) -> Array | float | None:
         """Dry-friction capacity (>= 0): a number or shape (N,); ``None`` for no dry part."""
@@ -210,16 +224,8 @@ class StribeckFriction(Effect):
     name = "stribeck_friction"
     state_dependent = True
 
-    def smooth_force(self, p: Array) -> Callable[[float], float] | None:
-        fs, vs = float(p[0]), max(float(p[1]), 1e-12)
-        exp = math.exp
-
-        def g(s: float) -> float:
-            if s == 0.0:
-                return 0.0
-            r = s / vs
-            return -fs * exp(-r * r) * (1.0 if s > 0.0 else -1.0)
-        return g
+    def smooth_law(self, p: Array) -> tuple[int, float, float] | None:
+        return (STRIBECK, float(p[0]), max(float(p[1]), 1e-12))
 
     def breakaway(self, p: Array) -> float:
         return max(float(p[0]), 0.0)
@@ -241,12 +247,8 @@ class Windage(Effect):
     name = "windage"
     state_dependent = True
 
-    def smooth_force(self, p: Array) -> Callable[[float], float] | None:
-        cw = float(p[0])
-
-        def g(s: float) -> float:
-            return -cw * s * abs(s)
-        return g
+    def smooth_law(self, p: Array) -> tuple[int, float, float] | None:
+        return (WINDAGE, float(p[0]), 0.0)
 
 
 @dataclass
@@ -259,12 +261,8 @@ class AsymmetricFriction(Effect):
     name = "asymmetric_friction"
     state_dependent = True
 
-    def smooth_force(self, p: Array) -> Callable[[float], float] | None:
-        d = float(p[0])
-
-        def g(s: float) -> float:
-            return -d * abs(s)
-        return g
+    def smooth_law(self, p: Array) -> tuple[int, float, float] | None:
+        return (ABS_VISCOUS, float(p[0]), 0.0)
 
     def derived(self, values: dict[str, float]) -> dict[str, float]:
         fv_name = str(self.options.get("viscous", "Fv"))

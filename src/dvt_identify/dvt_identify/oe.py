@@ -11,9 +11,10 @@ output transform ``h``) from :mod:`dvt_identify.effects`.
 Simulation is an exact zero-order-hold discretisation of the linear part (``scipy.linalg.expm``
 of ``[[A, I], [0, 0]] dt``) with every effect term evaluated at the start of a step and held over
 it. Models whose effects are all exogenous (no state-dependent force) are simulated in modal form
-with ``scipy.signal.lfilter`` (vectorised); otherwise a step loop in plain Python floats applies
-dry friction with a stick rule: a member speed that would cross zero within a step is set to zero,
-and it stays zero while the force needed to hold it is within the friction capacity.
+with ``scipy.signal.lfilter`` (vectorised); otherwise a step loop (compiled with numba,
+:mod:`dvt_identify.simloop`) applies dry friction with a stick rule: a member speed that would
+cross zero within a step is set to zero, and it stays zero while the force needed to hold it is
+within the friction capacity.
 
 :class:`OEFit` minimises the simulation error with ``scipy.optimize.least_squares`` (bounded
 ``trf``), outputs weighted by ``1/std(y_j)``, each segment with its own estimated initial state,
@@ -40,6 +41,7 @@ from dvt_identify.data import Segment, decimate
 from dvt_identify.effects import Effect, ParamSpec, SegmentView, fixed_names
 from dvt_identify.errors import DescriptionError, FitError
 from dvt_identify.metrics import parameter_std
+from dvt_identify.simloop import loop_members, loop_scalar, smooth_value
 
 Array = NDArray[np.float64]
 Progress = Callable[[str], None]
@@ -360,9 +362,24 @@ class _Dry:
     cfc: float
 
 
+SmoothLaw = tuple[int, float, float]
+"""A coded smooth member force ``(kind, p0, p1)`` (:mod:`dvt_identify.simloop`)."""
+SmoothForce = SmoothLaw | Callable[[float], float]
+
+
+def _as_callable(law: SmoothForce) -> Callable[[float], float]:
+    if callable(law):
+        return law
+    kind, p0, p1 = law
+
+    def g(s: float) -> float:
+        return float(smooth_value(kind, p0, p1, s))
+    return g
+
+
 def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, x0: Array,
-                  smooth: Sequence[tuple[Array, Callable[[float], float]]],
-                  dry: Sequence[tuple[Array, Array | float, float]], generic: bool = False
+                  smooth: Sequence[tuple[Array, SmoothForce]],
+                  dry: Sequence[tuple[Array, Array | float, float]], reference: bool = False
                   ) -> Array:
     """Step loop with state-dependent member forces held over each step.
 
@@ -371,11 +388,13 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
         w: generalised input ``B u_eff + F f_exo`` per sample [state unit/s], shape (N, nx).
         d: ``w @ Gd.T``, shape (N, nx).
         x0: initial state, shape (nx,).
-        smooth: (member c, g) pairs: force ``g(c.x)``.
+        smooth: (member c, law) pairs: force ``g(c.x)``, the law coded ``(kind, p0, p1)``
+            (:mod:`dvt_identify.simloop`) or any Python callable.
         dry: (member c, capacity (number or shape (N,)), breakaway) triples; capacities of
             the same member add up.
-        generic: use the general-nx loop even for one or two states (the specialised loops
-            for nx = 1 and nx = 2 implement the same rule, unrolled for speed).
+        reference: run the plain-Python loop even when every smooth law is coded (the compiled
+            kernels of :mod:`dvt_identify.simloop` implement the same rule; a callable law
+            always takes the Python loop).
 
     Returns:
         States, shape (N, nx).
@@ -391,6 +410,9 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
             grp[1] += brk
         else:
             groups[key] = [capv, brk]
+    coded = [(c, law) for c, law in smooth if not callable(law)]
+    if not reference and len(coded) == len(smooth):
+        return _compiled_loop(A, Ad, Gd, F, w, d, x0, coded, groups)
     drys: list[_Dry] = []
     for key, (capv, brk) in groups.items():
         cv = np.array(key)
@@ -398,13 +420,11 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
         drys.append(_Dry(c=list(key), cap=(capv.tolist() if isinstance(capv, np.ndarray)
                                            else float(capv)), brk=float(brk),
                          gdf=(Gd @ fcv).tolist(), fcv=fcv.tolist(), cfc=float(cv @ fcv)))
-    sm = [(np.asarray(c, float).tolist(), g, (Gd @ F @ c).tolist(), (F @ c).tolist())
-          for c, g in smooth]
-    if nx == 1 and not generic:
+    sm = [(np.asarray(c, float).tolist(), _as_callable(law), (Gd @ F @ c).tolist(),
+           (F @ c).tolist()) for c, law in smooth]
+    if nx == 1:
         return _loop_scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].tolist(),
                             d[:, 0].tolist(), float(x0[0]), sm, drys)
-    if nx == 2 and not generic:
-        return _loop_two(A, Ad, w, d, x0, sm, drys)
     Al, Adl = A.tolist(), Ad.tolist()
     wl, dl = w.tolist(), d.tolist()
     rng = range(nx)
@@ -468,77 +488,55 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
     return np.asarray(out, dtype=float)
 
 
-def _loop_two(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
-              sm: list[tuple[list[float], Callable[[float], float], list[float], list[float]]],
-              drys: list[_Dry]) -> Array:
-    """Two-state version of :func:`simulate_loop` (same rule, unrolled)."""
-    n = d.shape[0]
-    a11, a12, a21, a22 = (float(v) for v in A.ravel())
-    p11, p12, p21, p22 = (float(v) for v in Ad.ravel())
-    w0, w1 = w[:, 0].tolist(), w[:, 1].tolist()
-    d0, d1 = d[:, 0].tolist(), d[:, 1].tolist()
-    smooth = [(c[0], c[1], g, gd[0], gd[1], fc[0], fc[1]) for c, g, gd, fc in sm]
-    dry = [(dr.c[0], dr.c[1], dr.cap if isinstance(dr.cap, list) else None,
-            0.0 if isinstance(dr.cap, list) else float(dr.cap), dr.brk, dr.gdf[0], dr.gdf[1],
-            dr.fcv[0], dr.fcv[1], dr.cfc) for dr in drys]
-    xa, xb = float(x0[0]), float(x0[1])
-    out0 = [0.0] * n
-    out1 = [0.0] * n
-    out0[0], out1[0] = xa, xb
-    rest = [False] * len(dry)
-    for k in range(n - 1):
-        ya = p11 * xa + p12 * xb + d0[k]
-        yb = p21 * xa + p22 * xb + d1[k]
-        ea = eb = 0.0
-        for c0, c1, g, ga, gb, fa, fb in smooth:
-            tau = g(c0 * xa + c1 * xb)
-            if tau:
-                ya += ga * tau
-                yb += gb * tau
-                ea += fa * tau
-                eb += fb * tau
-        for gi, (c0, c1, capl, capc, brk, ga, gb, fa, fb, cfc) in enumerate(dry):
-            cap = capl[k] if capl is not None else capc
-            s = c0 * xa + c1 * xb
-            if not rest[gi] and s != 0.0:
-                tau = -cap if s > 0.0 else cap
-                ya += ga * tau
-                yb += gb * tau
-                sn = c0 * ya + c1 * yb
-                if (sn > 0.0) != (s > 0.0) or sn == 0.0:
-                    pa, pb = ya - fa * sn / cfc, yb - fb * sn / cfc
-                    ca = (c0 * (a11 * pa + a12 * pb + w0[k] + ea)
-                          + c1 * (a21 * pa + a22 * pb + w1[k] + eb))
-                    if abs(ca / cfc) <= cap + brk:
-                        ya, yb = pa, pb
-                        rest[gi] = True
-                    else:
-                        ya -= 2.0 * ga * tau
-                        yb -= 2.0 * gb * tau
-                        sn2 = c0 * ya + c1 * yb
-                        if (sn2 > 0.0) == (s > 0.0) or sn2 == 0.0:
-                            ya -= fa * sn2 / cfc
-                            yb -= fb * sn2 / cfc
-                            rest[gi] = True
-                continue
-            ca = c0 * (a11 * xa + a12 * xb + w0[k] + ea) + c1 * (a21 * xa + a22 * xb + w1[k] + eb)
-            req = -ca / cfc
-            if abs(req) <= cap + brk:
-                ya += ga * req
-                yb += gb * req
-                sn = c0 * ya + c1 * yb
-                ya -= fa * sn / cfc
-                yb -= fb * sn / cfc
-                rest[gi] = True
-            else:
-                tau = -cap if ca > 0.0 else cap
-                ya += ga * tau
-                yb += gb * tau
-                rest[gi] = False
-        xa, xb = ya, yb
-        out0[k + 1] = ya
-        out1[k + 1] = yb
-    return np.column_stack([out0, out1])
+def _compiled_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, x0: Array,
+                   smooth: Sequence[tuple[Array, SmoothLaw]],
+                   groups: dict[tuple[float, ...], list[Any]]) -> Array:
+    """Arrays for the :mod:`dvt_identify.simloop` kernels, and the call."""
+    n, nx = d.shape
+    ns = len(smooth)
+    sc = np.array([np.asarray(c, np.float64) for c, _ in smooth],
+                  dtype=np.float64).reshape(ns, nx)
+    skind = np.array([int(law[0]) for _, law in smooth], dtype=np.int64)
+    spar = np.array([[float(law[1]), float(law[2])] for _, law in smooth],
+                    dtype=np.float64).reshape(ns, 2)
+    # the same products, in the same association, as the Python loop (bitwise-equal results)
+    GdF = Gd @ F
+    sfc = np.array([F @ c for c in sc], dtype=np.float64).reshape(ns, nx)
+    sgd = np.array([GdF @ c for c in sc], dtype=np.float64).reshape(ns, nx)
+    w = np.ascontiguousarray(w, dtype=float)
+    d = np.ascontiguousarray(d, dtype=float)
+    if nx == 1:
+        cap = np.zeros(n)
+        brk = 0.0
+        gdf_unit = fmap = 1.0
+        for key, (capv, b) in groups.items():
+            c0 = key[0]
+            cap = cap + abs(c0) * np.broadcast_to(np.asarray(capv, float), (n,))
+            brk += abs(c0) * float(b)
+            fc = float(F[0, 0]) * c0
+            gdf_unit = float(Gd[0, 0]) * fc / c0
+            fmap = fc / c0
+        extra0 = sum(smooth_value(int(k), float(p[0]), float(p[1]), 0.0) * float(c[0])
+                     for k, p, c in zip(skind, spar, sc, strict=True))
+        x = loop_scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].copy(), d[:, 0].copy(),
+                        float(x0[0]), sc[:, 0].copy(), skind, spar, sgd[:, 0].copy(),
+                        bool(groups), np.ascontiguousarray(cap), float(brk), gdf_unit, fmap,
+                        float(extra0))
+        return np.asarray(x, dtype=float)[:, None]
+    nd = len(groups)
+    dc = np.array([np.array(key) for key in groups], dtype=np.float64).reshape(nd, nx)
+    dcap = np.empty((nd, n))
+    dbrk = np.empty(nd)
+    for g, (capv, b) in enumerate(groups.values()):
+        dcap[g] = np.broadcast_to(np.asarray(capv, float), (n,))
+        dbrk[g] = float(b)
+    dfcv = np.array([F @ c for c in dc], dtype=np.float64).reshape(nd, nx)
+    dgdf = np.array([Gd @ f for f in dfcv], dtype=np.float64).reshape(nd, nx)
+    dcfc = np.array([float(c @ f) for c, f in zip(dc, dfcv, strict=True)], dtype=np.float64)
+    return np.asarray(loop_members(np.ascontiguousarray(A, np.float64),
+                                   np.ascontiguousarray(Ad, np.float64), w, d,
+                                   np.array(x0, np.float64), sc, skind, spar, sgd, sfc, dc,
+                                   dcap, dbrk, dgdf, dfcv, dcfc), dtype=np.float64)
 
 
 def _loop_scalar(a: float, ad: float, w: list[float], d: list[float], x0: float,
@@ -674,7 +672,7 @@ class OEModel:
         # effects see the transformed inputs (a brake's capacity follows its engagement lag)
         view = SegmentView(seg.dt, u, seg.y)
         w = u @ B.T
-        smooth: list[tuple[Array, Callable[[float], float]]] = []
+        smooth: list[tuple[Array, SmoothForce]] = []
         dry: list[tuple[Array, Array | float, float]] = []
         brk: dict[tuple[float, ...], float] = {}
         for e, p in zip(self.effects, ps, strict=True):
@@ -682,9 +680,11 @@ class OEModel:
             if f is not None and e.member is not None:
                 w = w + np.outer(f, F @ e.member)
             if e.state_dependent and e.member is not None:
-                g = e.smooth_force(p)
-                if g is not None:
-                    smooth.append((e.member, g))
+                law: SmoothForce | None = e.smooth_law(p)
+                if law is None:
+                    law = e.smooth_force(p)
+                if law is not None:
+                    smooth.append((e.member, law))
                 b = e.breakaway(p)
                 if b:
                     key = tuple(float(v) for v in e.member)
@@ -778,7 +778,7 @@ class OEFit:
                  theta0: Array | None = None, extra_starts: Sequence[Array] = (),
                  weights: Array | None = None, max_nfev: int | None = None,
                  progress: Progress | None = None, screen_nfev: int = 30,
-                 screen_samples: int = 10000) -> None:
+                 screen_samples: int = 3000) -> None:
         self.model = model
         self.starts = max(1, int(starts))
         self.seed = seed
@@ -911,19 +911,20 @@ class OEFit:
                 if i == 0:
                     r = solve(st, z0, self.max_nfev)
                     note = ""
-                    # reference: the first start's optimum re-converged on the screening data
-                    ref = (float(solve(st, r.x, screen, screen_segs).cost) if q > 1
-                           and self.starts > 1 else float(r.cost))
+                    ref = float(r.cost)
+                    usable = True
                 else:
                     r = solve(st, z0, screen, screen_segs)
                     note = f" (screened{f' at 1/{q} rate' if q > 1 else ''})"
+                    # compared with the first start on the full data
+                    r.cost = cost_on(st, r.x, segments) if q > 1 else float(r.cost)
                     same = bool(r.cost <= ref * (1 + 1e-3))
+                    usable = False
                     if r.cost < ref * (1 - 1e-4):
                         r = solve(st, r.x, self.max_nfev)  # better than the first: polish
                         note = " (screened, then polished)"
                         same = None
-                    else:
-                        r.cost = cost_on(st, r.x, segments)
+                        usable = True
             except ValueError as exc:
                 self._say(f"start {i + 1}/{len(starts)} failed: {exc}")
                 continue
@@ -932,7 +933,8 @@ class OEFit:
                                             cost=float(r.cost), nfev=int(r.nfev),
                                             status=int(r.status), note=note.strip(" ()"),
                                             same_minimum=same))
-            results.append((r, st))
+            if usable:  # a screened start's residual and Jacobian are not the full data's
+                results.append((r, st))
             self._say(f"start {i + 1}/{len(starts)}: cost {r.cost:.6g} after {r.nfev} "
                       f"evaluations{note}, {time.monotonic() - t0:.1f} s")
         if not results:

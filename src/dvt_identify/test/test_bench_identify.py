@@ -66,6 +66,10 @@ def test_timing_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     res = json.loads(capsys.readouterr().out)
     assert res["samples"] == 3000
     assert res["baseline_seconds"] > 0 and res["loop_seconds"] > 0
+    # end to end adds reading the bags and writing the report to the identification
+    assert res["baseline_end_to_end_seconds"] > res["baseline_seconds"]
+    assert res["loop_end_to_end_seconds"] > res["loop_seconds"]
+    assert res["breakdown"]["jit_load_seconds"] >= 0
     assert res["settings"]["fit_decimate"] == 2 and res["settings"]["starts"] == 1
     assert res["settings"]["max_tries_per_round"] == 1
     assert res["recording"]["trips"] == 0 and res["recording"]["nacks"] == 0
