@@ -36,7 +36,7 @@ RUNS=(
   "ident-windage|--experiment ident --experiment-seed 5 --hidden windage --seed 15 --no-model"
   "ident-backlash|--experiment ident --experiment-seed 6 --hidden backlash --seed 16 --no-model"
   "ident-delay|--experiment ident --experiment-seed 7 --hidden delay --seed 17 --no-model"
-  "ident-wet_brake|--experiment ident --experiment-seed 8 --hidden wet_brake --seed 18 --no-model"
+  "ident-wet_brake|--experiment ident_shifts --experiment-seed 8 --hidden wet_brake --seed 18 --no-model"
 )
 # 1 kHz identification runs record the contract topics, the commands and the diagnostics
 # (the model node's output is not needed: dvt-replay regenerates it); the 62.5 Hz thesis

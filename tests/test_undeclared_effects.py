@@ -57,6 +57,12 @@ def test_clean_plant_accepts_nothing(tmp_path):
     ("ident-stribeck", {"coulomb_friction", "stribeck_friction"}),
     ("ident-delay", {"measurement_delay"}),
     ("ident-windage", {"windage"}),
+    # play in a compliant spline to a load behind the carrier-3 tachometer: the load's
+    # impacts make the measured speed a staircase only the compliant play explains
+    ("ident-backlash", {"backlash"}),
+    # wet bands (shift-rich run): no torque while the oil film is squeezed out, then an
+    # S-shaped rise; one engagement dead time shared by the three bands explains it
+    ("ident-wet_brake", {"brake_engagement"}),
 ])
 def test_hidden_effect_is_ranked_first_and_accepted(bag, expected, tmp_path):
     r = _identify(bag, tmp_path)

@@ -37,6 +37,9 @@ Named experiments (:data:`EXPERIMENTS`, :func:`build`):
     system), speed steps up to 2000 rpm (windage), then each gear locked with PRBS (the
     one-degree-of-freedom systems, backlash and friction reversals), shifts in between
     (band engagement).
+``ident_shifts``
+    A shift-rich identification run: neutral PRBS and multisine, then twelve band engagements
+    against slipping rings (each gear from four sun speeds), for band-engagement effects.
 ``smoke``
     A 5 s version of ``ident`` (neutral PRBS, gear 1 with PRBS) for end-to-end tests.
 
@@ -592,6 +595,41 @@ def ident(seed: int = 0, neutral_prbs: float = 6.0, neutral_multisine: float = 5
                     "clock_s": clock, "order": order})
 
 
+def ident_shifts(seed: int = 0, neutral_prbs: float = 5.0, neutral_multisine: float = 4.0,
+                 speeds_rpm: Sequence[float] = (900.0, -700.0, 1200.0, -1000.0),
+                 gears: Sequence[int] = (1, 2, 3), spin: float = 0.8, engaged: float = 0.7,
+                 amplitude: float = 2.5, clock: float = 0.03, order: int = 8) -> Experiment:
+    """Shift-rich identification run (about 29 s at 1 kHz) for band-engagement effects.
+
+    Neutral PRBS (``neutral_prbs`` s) and multisine (``neutral_multisine`` s) as in
+    :func:`ident`, then for each sun speed in ``speeds_rpm`` and each gear in ``gears``: the
+    speed loop spins the shafts up in neutral (``spin`` s), then the motor goes to 0 A and the
+    gear is selected (``engaged`` s): the band engages against a slipping ring (12 engagements
+    and releases with the defaults), then stop.
+    """
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, t1 = s.phase("neutral-prbs", neutral_prbs)
+    _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 1)
+    t0, t1 = s.phase("neutral-multisine", neutral_multisine)
+    _multisine(s, t0, t1, amplitude + 0.5, 0.0, 200.0, 5.0, 0.2, 20.0, seed, 2)
+    for rpm in speeds_rpm:
+        for g in gears:
+            t0, _ = s.phase(f"spin-{rpm:g}rpm", spin)
+            s.at(t0, Gear(0))
+            s.at(t0, SunSpeed(float(rpm) * RPM))
+            t0, _ = s.phase(f"gear{g}-engage", engaged)
+            s.at(t0, MotorCurrent(0.0))
+            s.at(t0, Gear(int(g)))
+    _stop(s, 1.5)
+    return s.build("ident_shifts", "shift-rich identification run: neutral PRBS + multisine, "
+                   f"band engagements in gears {list(gears)} from {list(speeds_rpm)} rpm", 1000,
+                   seed, {"neutral_prbs_s": neutral_prbs, "neutral_multisine_s": neutral_multisine,
+                          "speeds_rpm": tuple(speeds_rpm), "gears": tuple(gears),
+                          "spin_s": spin, "engaged_s": engaged, "amplitude_A": amplitude,
+                          "clock_s": clock, "order": order})
+
+
 def smoke(seed: int = 0) -> Experiment:
     """A 5 s end-to-end check: neutral PRBS, gear 1 with PRBS, stop."""
     s = _Schedule()
@@ -612,6 +650,7 @@ EXPERIMENTS: dict[str, Callable[..., Experiment]] = {
     "speed_steps": speed_steps,
     "gears_excitation": gears_excitation,
     "ident": ident,
+    "ident_shifts": ident_shifts,
     "smoke": smoke,
 }
 """Experiment name -> builder ``f(seed=0, **settings) -> Experiment``."""

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
 
 from dvt_identify.errors import DescriptionError
-from dvt_identify.simloop import ABS_VISCOUS, STRIBECK, WINDAGE, smooth_value
+from dvt_identify.simloop import ABS_VISCOUS, STRIBECK, WINDAGE, smooth_value, spline_load
 
 Array = NDArray[np.float64]
 
@@ -559,6 +559,20 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
         return cls(where=where, params=(P("dFv" + sfx, 0.0, -inf, inf, unit),), member=mvec(),
                    options=opts)
     if name == "backlash":
+        if where in state_names and opts.get("compliant"):  # play in a spline to a load
+            unit = su.split("/")[0] if su else ""
+            wn0 = float(opts.get("wn", 400.0))  # type: ignore[arg-type]
+            z0 = float(opts.get("zeta", 0.15))  # type: ignore[arg-type]
+            probe = float(opts.get("probe_gap", 0.01))  # type: ignore[arg-type]
+            if not (wn0 > 0 and z0 > 0 and probe > 0):
+                raise DescriptionError(f"candidate backlash@{where} (compliant): wn, zeta and "
+                                       f"probe_gap must be > 0, got {wn0}, {z0}, {probe}")
+            return CompliantOutputBacklash(
+                where=where, index=state_index(where), options=opts,
+                params=(P("gap" + sfx, 0.0, 0.0, 1.0, unit, step=probe),
+                        P("wn" + sfx, wn0, 10.0, 1e4, f"1/{su.split('/')[-1]}" if su else "",
+                          null=wn0),
+                        P("zeta" + sfx, z0, 1e-3, 2.0, "1", null=z0)))
         if where in state_names:  # lost motion between the member and its sensor
             unit = su.split("/")[0] if su else ""
             return OutputBacklash(where=where, params=(P("delta" + sfx, 0.0, 0.0, 1.0, unit,
@@ -566,6 +580,25 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
                                   index=state_index(where), options=opts)
         return cls(where=where, params=(P("delta" + sfx, 0.0, 0.0, inf, "input unit"),),
                    index=input_index(where), options=opts)
+    if name == "brake_engagement" and opts.get("dead_time"):
+        tmax = float(opts.get("max_dead_time", 0.2))  # type: ignore[arg-type]
+        if not tmax > 0:
+            raise DescriptionError(f"candidate brake_engagement@{where} (dead_time): "
+                                   f"max_dead_time must be > 0 s, got {tmax}")
+        shared = opts.get("inputs")  # one dead time for several bands (same oil, same bands)
+        if shared is None:
+            idx: tuple[int, ...] = (input_index(where),)
+        elif isinstance(shared, (list, tuple)) and shared:
+            idx = tuple(input_index(str(n)) for n in shared)
+            if len(set(idx)) != len(idx):
+                raise DescriptionError(f"candidate brake_engagement@{where} (dead_time): "
+                                       f"inputs: duplicate names in {list(shared)}")
+        else:
+            raise DescriptionError(f"candidate brake_engagement@{where} (dead_time): inputs: "
+                                   f"expected a non-empty list of input names, got {shared!r}")
+        return EngagementDeadTime(where=where, index=idx[0] if len(idx) == 1 else -1,
+                                  indices=idx, options=opts,
+                                  params=(P("td" + sfx, 0.0, 0.0, tmax, "s", step=5e-3),))
     if name == "brake_engagement":
         return cls(where=where, params=(P("tau" + sfx, 0.0, 0.0, 10.0, "s"),),
                    index=input_index(where), options=opts)
@@ -596,3 +629,109 @@ def fixed_names(effect: Effect) -> tuple[str, ...]:
     if isinstance(effect, PeriodicDisturbance):
         return (effect.params[2].name,)
     return ()
+
+
+# ---------------------------------------------------------------------------------------------
+# Compliant play between a member and its sensor shaft (backlash with a load behind a spline)
+
+@dataclass
+class CompliantOutputBacklash(Effect):
+    """Free play in a compliant spline between a member and the shaft that carries its speed
+    sensor and a load (vocabulary name ``backlash``; description option ``compliant: true``).
+
+    The sensed shaft (load speed ``w_L``) is driven one way by the model's member speed ``w``
+    through the play ``gap`` and a spring-damper contact: with the twist ``z = theta - theta_L``,
+    ``w_L' = max(0, wn^2 (z - gap/2) + 2 zeta wn (w - w_L))`` for ``z > gap/2`` (mirrored for
+    ``z < -gap/2``, nothing inside the gap), ``z' = w - w_L``; the output is ``w_L`` averaged over
+    the sample interval centred on the sample (the zero-phase anti-alias filter of decimated
+    data leaves no more of a sub-sample impact transient). ``wn`` is the contact frequency of the
+    load on the spline (``sqrt(k / J_load)``) and ``zeta`` its damping ratio. The load's
+    inertia and drag load the member at low frequency like a rigid part of it, which the fitted
+    structure absorbs; the reaction of the impacts on the member is not modelled (one-way).
+
+    Parameters: ``gap`` [rad, total play, >= 0; 0 = rigid: the effect vanishes, compliance
+    included], ``wn`` [rad/s] and ``zeta`` [1] (shape parameters, scanned by the scorer). The
+    effect is not differentiable at ``gap = 0`` (an impact oscillator), so the scorer's gap
+    regressor is the secant to a probe play (``gap`` spec ``step``, default 0.01 rad).
+    """
+
+    name = "backlash"
+
+    def label(self) -> str:
+        """``backlash@where(compliant)``: distinct from the rigid play on the same output."""
+        return f"{self.name}@{self.where}(compliant)"
+
+    def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
+        gap, wn, zeta = max(float(p[0]), 0.0), max(float(p[1]), 1e-9), max(float(p[2]), 0.0)
+        if gap == 0.0:
+            return None
+        # sub-steps: wn h <= 0.2 (the explicit contact stays accurate) and an even count
+        sub = max(2, math.ceil(dt * wn / 0.2))
+        sub += sub % 2
+        out = y.copy()
+        out[:, self.index] = spline_load(y[:, self.index], dt, 0.5 * gap, wn * wn,
+                                          2.0 * zeta * wn, sub)
+        return out
+
+    def variants(self, seg: SegmentView) -> list[tuple[str, dict[str, float]]]:
+        """Grid of contact frequency ``wn`` (below the Nyquist frequency of ``seg``: the data
+        cannot show a faster contact), damping ratio and probe play (the gap regressor's
+        secant step); options ``wn_scan``, ``zeta_scan``, ``gap_scan``."""
+        g_name, wn_name, z_name = (s.name for s in self.params)
+        opts = self.options
+
+        def grid(key: str, default: tuple[float, ...]) -> list[float]:
+            return [float(v) for v in opts.get(key, default)]  # type: ignore[attr-defined]
+        nyq = math.pi / seg.dt
+        return [(f"{g_name}={g:g},{wn_name}={wn:g},{z_name}={z:g}",
+                 {g_name: g, wn_name: wn, z_name: z})
+                for g in grid("gap_scan", (0.005, 0.01, 0.02, 0.04))
+                for wn in grid("wn_scan", (150.0, 250.0, 350.0, 450.0, 600.0, 1000.0)) if wn < nyq
+                for z in grid("zeta_scan", (0.05, 0.1, 0.2, 0.4))]
+
+    def gain_names(self) -> tuple[str, ...]:
+        return (self.params[0].name,)
+
+    def derived(self, values: dict[str, float]) -> dict[str, float]:
+        wn = values.get(self.params[1].name)
+        if wn is None:
+            return {}
+        return {f"fn{self.params[1].name[2:]}": wn / (2.0 * math.pi)}
+
+
+@dataclass
+class EngagementDeadTime(Effect):
+    """Dead time of a band's engagement (vocabulary name ``brake_engagement``; description
+    option ``dead_time: true``): a wet band first squeezes out its oil film and transmits
+    (almost) nothing for ``t_d`` seconds after it is energised, then builds its torque; it
+    releases at once. On the (already lagged) brake input ``u``:
+    ``u_eff(t) = min(u(t), u(t - t_d))`` (linear interpolation, the first value held before the
+    start), which delays every rise by ``t_d`` and no fall. Together with the model's
+    first-order engagement lag this gives an S-shaped (delayed) engagement; ``t_d = 0`` is the
+    lag alone. Parameter ``t_d`` in ``[0, max_dead_time]`` s.
+
+    With the description option ``inputs: [brake1, brake2, ...]`` one ``t_d`` applies to every
+    listed input (identical bands in the same oil; ``where`` is then only a label, e.g.
+    ``brakes``): ``indices`` holds the input columns, ``index`` is -1 (no single input).
+    """
+
+    name = "brake_engagement"
+    indices: tuple[int, ...] = ()
+
+    def label(self) -> str:
+        """``brake_engagement@where(dead_time)``: distinct from the second lag stage."""
+        return f"{self.name}@{self.where}(dead_time)"
+
+    def input_transform(self, p: Array, u: Array, dt: float) -> Array | None:
+        td = float(p[0])
+        if td <= 0.0:
+            return None
+        cols = self.indices or (self.index,)
+        n = u.shape[0]
+        k = np.arange(n, dtype=float)
+        out = u.copy()
+        for j in cols:
+            col = u[:, j]
+            late = np.interp(k - td / dt, k, col)
+            out[:, j] = np.minimum(col, late)
+        return out

@@ -312,8 +312,12 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
         variants: list[dict[str, object]] = []
         for vlabel, shape in cand.variants(view):
             null = cand.null_vector()
+            # a variant value for a gain is its secant probe (an effect that is not
+            # differentiable at its null, e.g. play); for a shape parameter, its value
+            probes = {n: v for n, v in shape.items() if n in cand.gain_names()}
             for name, v in shape.items():
-                null[cand.pindex(name)] = v
+                if name not in probes:
+                    null[cand.pindex(name)] = v
             model, theta = _candidate_theta(fit, cand, null)
             off = len(fit.theta_)
             cols, steps = [], []
@@ -322,6 +326,8 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                 spec = cand.params[gi]
                 if isinstance(cand, MeasurementDelay):
                     h = segments[0].dt
+                elif gname in probes:
+                    h = probes[gname]
                 elif spec.step is not None:
                     h = spec.step
                 else:
@@ -351,10 +357,14 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
             variants.append({"variant": vlabel, "r2_projected": r2,
                              "fraction_outside_model_span": outside.tolist()})
             if best is None or r2 > best.r2:
-                implied = {cand.params[cand.pindex(g)].name: float(null[cand.pindex(g)] + b)
+                # a probed gain starts the refit at its probe (the size whose effect was
+                # scored) when the effect fits with the right sign
+                implied = {cand.params[cand.pindex(g)].name:
+                           float(probes[g] if g in probes and b > 0 else null[cand.pindex(g)] + b)
                            for g, b in zip(cand.gain_names(), beta, strict=True)}
                 for name, v in shape.items():
-                    implied[name] = float(v)
+                    if name not in probes:
+                        implied[name] = float(v)
                 dof = Z.shape[1]
                 lm = m_rows * r2
                 best = CandidateScore(

@@ -1,5 +1,7 @@
 """Compiled step loops of the output-error simulation (numba, ``cache=True``).
 
+Also the compliant-spline load of the ``backlash`` candidate (:func:`spline_load`).
+
 The simulation of a model with state-dependent member forces (dry friction with a stick rule,
 Stribeck, windage, direction-dependent viscous friction) cannot be vectorised: each step depends
 on the previous one. These kernels run that loop in machine code; :func:`dvt_identify.oe.
@@ -230,6 +232,63 @@ def loop_scalar(a: float, ad: float, w: Array, d: Array, x0: float,
     return out
 
 
+def spline_load_py(w: Array, dt: float, half: float, a: float, b: float, sub: int) -> Array:
+    """Load-shaft speed behind a compliant spline with play, driven by the member speed.
+
+    The member speed ``w`` (N,) is linearly interpolated over each sample interval, which is cut
+    into ``sub`` sub-steps (semi-implicit Euler: load speed first, then the twist). The spline
+    acts only outside the gap and never pulls: ``alpha = max(0, a (z - half) + b (w - w_L))``
+    for ``z > half`` (mirrored below ``-half``), ``w_L' = alpha``, ``z' = w - w_L``. Returns the
+    load speed averaged over the sample interval centred on each sample, shape (N,).
+    """
+    n = w.shape[0]
+    h = dt / sub
+    wl = w[0]
+    z = 0.0
+    acc = np.zeros(n)
+    half_sub = sub // 2
+    for k in range(n - 1):
+        w0 = w[k]
+        dw = (w[k + 1] - w0) / sub
+        for i in range(sub):
+            wc = w0 + dw * (i + 0.5)
+            if z > half:
+                t = a * (z - half) + b * (wc - wl)
+                t = t if t > 0.0 else 0.0
+            elif z < -half:
+                t = a * (z + half) + b * (wc - wl)
+                t = t if t < 0.0 else 0.0
+            else:
+                t = 0.0
+            wl_new = wl + h * t
+            z += h * (wc - wl_new)
+            # the sub-step's mean speed belongs to the sample whose interval holds it
+            if i < half_sub:
+                acc[k] += 0.5 * (wl + wl_new)
+            else:
+                acc[k + 1] += 0.5 * (wl + wl_new)
+            wl = wl_new
+    out = np.empty(n)
+    if n == 1:
+        out[0] = w[0]
+        return out
+    lo = sub - half_sub  # sub-steps of the second half of an interval
+    out[0] = acc[0] / half_sub if half_sub else w[0]
+    for k in range(1, n - 1):
+        out[k] = acc[k] / sub
+    out[n - 1] = acc[n - 1] / lo
+    return out
+
+
+_spline_load_kernel = njit(cache=True, nogil=True)(spline_load_py)
+
+
+def spline_load(w: Array, dt: float, half: float, a: float, b: float, sub: int) -> Array:
+    """:func:`spline_load_py`, compiled; shape (N,)."""
+    return np.asarray(_spline_load_kernel(np.ascontiguousarray(w, dtype=np.float64), float(dt),
+                                          float(half), float(a), float(b), int(sub)))
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) both kernels now, on a tiny problem; what a
     process pays once before its first simulation with member forces."""
@@ -241,3 +300,4 @@ def warm_up() -> None:
                  np.zeros((0, 2)), e1, e2, e2, e1)
     loop_scalar(0.0, 1.0, np.zeros(2), np.zeros(2), 0.0, e1, ek, np.zeros((0, 2)), e1,
                 False, np.zeros(2), 0.0, 1.0, 1.0, 0.0)
+    spline_load(np.zeros(2), 1e-3, 0.0, 1.0, 1.0, 2)
