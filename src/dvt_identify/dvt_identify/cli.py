@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -21,11 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from dvt_identify.data import (
+    DataWarning,
     Segment,
     _constant,
     check_excitation,
     decimate,
-    load_segment,
+    load_bag_segments,
     lowpass,
 )
 from dvt_identify.description import DEFAULT_DESCRIPTION, Description, load_description
@@ -42,14 +44,14 @@ def load_segments(bags: Sequence[str | Path], desc: Description) -> list[Segment
         DataError: naming the bag, topic and problem.
     """
     out = []
-    for bag in bags:
-        seg = load_segment(bag, desc.inputs, desc.outputs, desc.checks)
-        lp = desc.preprocess.lowpass
-        if lp:
-            seg = lowpass(seg, float(lp["cutoff_hz"]), int(lp.get("order", 4)),
-                          bool(lp.get("zero_phase", True)))
-        seg = decimate(seg, desc.preprocess.decimate)
-        out.append(seg)
+    for bag in bags:  # a bag split at long gaps gives several segments
+        for seg in load_bag_segments(bag, desc.inputs, desc.outputs, desc.checks):
+            lp = desc.preprocess.lowpass
+            if lp:
+                seg = lowpass(seg, float(lp["cutoff_hz"]), int(lp.get("order", 4)),
+                              bool(lp.get("zero_phase", True)))
+            seg = decimate(seg, desc.preprocess.decimate)
+            out.append(seg)
     return out
 
 
@@ -100,8 +102,15 @@ def run(est_bags: Sequence[str], val_bags: Sequence[str], out_dir: str | Path,
                             "separate data")
     say(f"description {desc.name} ({desc.source}); reading {len(est_bags)} estimation and "
         f"{len(val_bags)} validation bag(s)")
-    est = load_segments(est_bags, desc)
-    val = load_segments(val_bags, desc)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        est = load_segments(est_bags, desc)
+        val = load_segments(val_bags, desc)
+    for w in caught:  # unused parts of a recording: always shown, also with --quiet
+        if issubclass(w.category, DataWarning):
+            print(f"[dvt-identify] warning: {w.message}", file=sys.stderr, flush=True)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     desc, dropped = drop_unexcited_model_effects(desc, est)
     for label in dropped:
         say(f"model effect {label} dropped: its input never varies in the estimation data")

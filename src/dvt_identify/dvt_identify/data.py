@@ -6,9 +6,12 @@ A recording is a rosbag2 directory (MCAP, CDR, ROS 2 Jazzy definitions). The ide
 and turns each bag into a :class:`Segment` on a uniform time grid. Topics not named are ignored.
 
 Checks (each refusal names bag, topic and problem, see :class:`~dvt_identify.errors.DataError`):
-stamps strictly increasing, no NaN/inf, gaps no longer than ``max_gap_samples`` missing samples
-(shorter ones are filled by linear interpolation and counted), no saturation against limits the
-description gives, at least ``min_samples`` samples, some excitation.
+stamps strictly increasing, no NaN/inf, at least ``min_samples`` aligned samples, no saturation
+against limits the description gives, some excitation. Gaps of up to ``max_gap_samples`` missing
+samples are filled by linear interpolation (and counted); a longer gap splits the recording into
+segments ``<bag>#1``, ``<bag>#2``, ... (each fitted with its own initial state); a piece shorter
+than ``min_samples`` is dropped with a :class:`DataWarning` (bag, time span, why), and a bag with
+no piece long enough is refused with an error naming the gaps.
 
 Pre-processing: low-pass Butterworth on inputs and outputs alike (like MATLAB ``idfilt``; optionally
 zero-phase) and decimation with an anti-alias filter.
@@ -17,8 +20,10 @@ zero-phase) and decimation with an anti-alias filter.
 from __future__ import annotations
 
 import shutil
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +35,13 @@ from dvt_identify.errors import DataError
 Array = NDArray[np.float64]
 FIELDS = ("position", "velocity", "effort")
 JOINT_STATE = "sensor_msgs/msg/JointState"
+#: Joins a bag path and the number of one of its pieces in a segment name (``<bag>#2``).
+SEGMENT_SEP = "#"
+
+
+class DataWarning(UserWarning):
+    """Part of a recording is not used (e.g. a piece too short between long gaps); the message
+    names the bag, the time span and why."""
 
 
 @dataclass(frozen=True)
@@ -139,81 +151,31 @@ def make_segment(name: str, t: ArrayLike, u: ArrayLike, y: ArrayLike,
 # Bag I/O
 
 
-def _typestore():  # type: ignore[no-untyped-def]
-    from rosbags.typesys import Stores, get_typestore
-
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
 def read_jointstate_topics(bag: str | Path, topics: Sequence[str]) -> dict[str, JointStateSeries]:
-    """Read the JointState ``topics`` of ``bag``; other topics are ignored.
+    """Read the JointState ``topics`` of ``bag`` in one pass; other topics are ignored.
+
+    Uses :func:`dvt_model.bagio.read_topics` (bulk decoding of the raw CDR).
 
     Raises:
-        DataError: the bag cannot be opened, a topic is missing, not JointState, or its joint
-            names change between messages.
+        DataError: the bag cannot be opened, a topic is missing, not JointState, has no
+            messages, a message is undecodable, or its joint names or array lengths change
+            between messages (the message names bag, topic, message index and field).
     """
-    from rosbags.rosbag2 import Reader
+    from dvt_model.bagio import read_topics
+    from dvt_model.errors import BagError
 
     path = Path(bag)
     if not path.exists():
         raise DataError(f"{path}: bag not found")
-    ts = _typestore()
     try:
-        reader = Reader(path)
-        reader.open()
-    except Exception as exc:  # rosbags raises several types for unreadable bags
-        raise DataError(f"{path}: cannot open bag: {exc}") from exc
-    try:
-        present = {c.topic: c for c in reader.connections}
-        conns = []
-        for topic in topics:
-            if topic not in present:
-                raise DataError(f"{path}: topic {topic}: not in bag (bag has: "
-                                f"{', '.join(sorted(present)) or 'no topics'})")
-            if present[topic].msgtype != JOINT_STATE:
-                raise DataError(f"{path}: topic {topic}: expected {JOINT_STATE}, got "
-                                f"{present[topic].msgtype}")
-            conns.append(present[topic])
-        rows: dict[str, list[tuple[int, tuple[str, ...], object, object, object]]] = {
-            t: [] for t in topics}
-        for conn, _, raw in reader.messages(connections=[c for c in reader.connections
-                                                         if c.topic in rows]):
-            msg = ts.deserialize_cdr(raw, conn.msgtype)
-            st = msg.header.stamp
-            rows[conn.topic].append((int(st.sec) * 1_000_000_000 + int(st.nanosec),
-                                     tuple(msg.name), msg.position, msg.velocity, msg.effort))
-    except DataError:
-        raise
-    except Exception as exc:
-        raise DataError(f"{path}: cannot read bag: {exc}") from exc
-    finally:
-        reader.close()
-    out: dict[str, JointStateSeries] = {}
-    for topic in topics:
-        r = rows[topic]
-        if not r:
-            raise DataError(f"{path}: topic {topic}: no messages")
-        names = r[0][1]
-        for i, row in enumerate(r):
-            if row[1] != names:
-                raise DataError(f"{path}: topic {topic}: joint names change at message {i}: "
-                                f"{list(names)} -> {list(row[1])}")
-        stamps = np.array([row[0] for row in r], dtype=np.int64)
-        arrays: dict[str, Array | None] = {}
-        for fi, fname in enumerate(FIELDS):
-            lens = {len(row[2 + fi]) for row in r}  # type: ignore[arg-type]
-            if lens == {0}:
-                arrays[fname] = None
-            elif lens == {len(names)}:
-                arrays[fname] = np.array([row[2 + fi] for row in r], dtype=float)
-            else:
-                i = next(i for i, row in enumerate(r)
-                         if len(row[2 + fi]) != len(names))  # type: ignore[arg-type]
-                raise DataError(f"{path}: topic {topic}: field {fname}: message {i} has "
-                                f"{len(r[i][2 + fi])} values for "  # type: ignore[arg-type]
-                                f"{len(names)} joints")
-        out[topic] = JointStateSeries(stamps_ns=stamps, names=names, **arrays)
-    return out
+        series = read_topics(path, topics)
+    except BagError as exc:
+        raise DataError(str(exc)) from exc
+    return {topic: JointStateSeries(
+        stamps_ns=ser.stamps_ns, names=ser.names,
+        position=ser.position if ser.position.shape[1] else None,
+        velocity=ser.velocity if ser.velocity.shape[1] else None,
+        effort=ser.effort if ser.effort.shape[1] else None) for topic, ser in series.items()}
 
 
 def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries],
@@ -269,9 +231,10 @@ class Checks:
     """Data checks applied to every bag.
 
     Attributes:
-        min_samples: fewest samples a segment may have after alignment.
-        max_gap_samples: longest run of missing samples filled by interpolation; longer gaps are
-            refused.
+        min_samples: fewest aligned samples a bag, and each segment cut from it, may have; a
+            shorter piece between long gaps is dropped with a :class:`DataWarning`.
+        max_gap_samples: longest run of missing samples filled by interpolation; a longer gap
+            splits the recording into segments (see :func:`load_bag_segments`).
         max_saturated_fraction: largest fraction of samples allowed at a signal's saturation
             limits.
         min_relative_std: a signal whose std is below this times (1 + |mean|) is "constant".
@@ -341,27 +304,6 @@ def _align(path: Path, stamps: dict[str, NDArray[np.int64]], reference: str
     return {t: i[keep] for t, i in idx.items()}
 
 
-def _fill_gaps(path: Path, topic: str, t: Array, cols: Array, max_gap: int
-               ) -> tuple[Array, Array, int]:
-    """Put samples on the uniform grid of the median step; interpolate short gaps."""
-    d = np.diff(t)
-    dt = float(np.median(d))
-    steps = d / dt
-    big = steps > max_gap + 1.5
-    if np.any(big):
-        i = int(np.argmax(big))
-        raise DataError(f"{path}: topic {topic}: gap of {d[i]:.6g} s ({int(np.rint(steps[i])) - 1} "
-                        f"missing samples) at t = {t[i]:.6f} s; at most {max_gap} missing "
-                        "samples are filled")
-    missing = int(np.sum(np.maximum(np.round(steps) - 1, 0)))
-    n = int(np.rint((t[-1] - t[0]) / dt)) + 1
-    grid = t[0] + dt * np.arange(n)
-    if missing == 0 and np.max(np.abs(grid - t)) < 0.25 * dt:
-        return t, cols, 0
-    out = np.column_stack([np.interp(grid, t, cols[:, j]) for j in range(cols.shape[1])])
-    return grid, out, missing
-
-
 def check_signal(path: str | Path, topic: str, name: str, x: Array, spec: SignalSpec | None,
                  checks: Checks) -> None:
     """Saturation check of one signal against ``spec.saturation``."""
@@ -381,15 +323,77 @@ def _constant(x: Array, checks: Checks) -> bool:
     return bool(np.std(x) <= checks.min_relative_std * (1.0 + abs(float(np.mean(x)))))
 
 
-def load_segment(bag: str | Path, inputs: Sequence[SignalSpec], outputs: Sequence[SignalSpec],
-                 checks: Checks | None = None) -> Segment:
-    """Read, align and check one bag; return its :class:`Segment` (time from 0).
+def _fill_gaps(t: Array, cols: Array, dt: float) -> tuple[Array, Array, int]:
+    """Put one gap-free piece on the uniform grid of step ``dt`` from its first sample;
+    interpolate the missing samples linearly. Returns (grid, values, missing samples)."""
+    steps = np.diff(t) / dt
+    missing = int(np.sum(np.maximum(np.round(steps) - 1, 0)))
+    n = int(np.rint((t[-1] - t[0]) / dt)) + 1
+    grid = t[0] + dt * np.arange(n)
+    if missing == 0 and n == t.size and np.max(np.abs(grid - t)) < 0.25 * dt:
+        return t, cols, 0
+    out = np.column_stack([np.interp(grid, t, cols[:, j]) for j in range(cols.shape[1])])
+    return grid, out, missing
+
+
+@dataclass(frozen=True)
+class Gap:
+    """A gap longer than ``max_gap_samples`` missing samples (where a recording is split).
+
+    Attributes:
+        before, after: times [s] (from the bag's first aligned sample) of the samples around it.
+        missing: number of missing samples.
+    """
+
+    before: float
+    after: float
+    missing: int
+
+    def __str__(self) -> str:
+        return (f"{self.after - self.before:.6g} s ({self.missing} missing samples) after "
+                f"t = {self.before:.6f} s")
+
+
+def split_at_gaps(t: Array, dt: float, max_gap: int) -> tuple[list[tuple[int, int]], list[Gap]]:
+    """Cut a time axis at gaps of more than ``max_gap`` missing samples.
+
+    Args:
+        t: sample times [s], shape (N,), strictly increasing.
+        dt: nominal sample time [s].
+        max_gap: longest run of missing samples that does not split.
+
+    Returns:
+        The pieces as index ranges ``[start, stop)`` in time order, and the gaps between them.
+    """
+    steps = np.diff(t) / dt
+    cut = np.flatnonzero(steps > max_gap + 1.5)
+    bounds = [0, *(int(i) + 1 for i in cut), int(t.size)]
+    gaps = [Gap(float(t[i]), float(t[i + 1]), int(np.rint(steps[i])) - 1) for i in cut]
+    return list(pairwise(bounds)), gaps
+
+
+def _gap_list(gaps: Sequence[Gap], most: int = 5) -> str:
+    text = "; ".join(str(g) for g in gaps[:most])
+    return text + (f"; and {len(gaps) - most} more" if len(gaps) > most else "")
+
+
+def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
+                      outputs: Sequence[SignalSpec], checks: Checks | None = None
+                      ) -> list[Segment]:
+    """Read, align and check one bag; return its :class:`Segment` (one per gap-free piece).
 
     The reference clock is the first output's topic; other topics are matched by identical stamp
-    (the contract), or else by nearest stamp within a quarter sample.
+    (the contract), or else by nearest stamp within a quarter sample. Gaps of up to
+    ``checks.max_gap_samples`` missing samples are filled by linear interpolation; a longer gap
+    splits the recording into segments named ``<bag>#1``, ``<bag>#2``, ... (in time order; a bag
+    without such a gap keeps the name ``<bag>``), each with time from 0 and fitted with its own
+    initial state. A piece with fewer than ``checks.min_samples`` samples is dropped with a
+    :class:`DataWarning` naming the bag, its time span and why. Saturation, constant outputs and
+    excitation are checked over the kept samples of the bag together.
 
     Raises:
-        DataError: naming the bag, topic and problem.
+        DataError: naming the bag, topic and problem (also when no piece is long enough: then
+            it names the gaps).
     """
     checks = checks or Checks()
     path = Path(bag)
@@ -407,21 +411,68 @@ def load_segment(bag: str | Path, inputs: Sequence[SignalSpec], outputs: Sequenc
         raise DataError(f"{path}: topic {ref_topic}: too little data: {stamps.size} aligned "
                         f"samples (need at least {checks.min_samples})")
     t = (stamps - stamps[0]).astype(float) * 1e-9
-    t, cols, missing = _fill_gaps(path, ref_topic, t, cols, checks.max_gap_samples)
+    dt = float(np.median(np.diff(t)))
+    pieces, gaps = split_at_gaps(t, dt, checks.max_gap_samples)
+    split = len(pieces) > 1
+    kept: list[tuple[int, Array, Array, int]] = []
+    for k, (i0, i1) in enumerate(pieces, start=1):
+        if i1 - i0 < checks.min_samples:
+            warnings.warn(DataWarning(
+                f"{path}: topic {ref_topic}: samples at t = {t[i0]:.6f} .. {t[i1 - 1]:.6f} s "
+                f"(piece {k} of {len(pieces)}, {i1 - i0} samples between gaps of more than "
+                f"{checks.max_gap_samples} missing samples) dropped: fewer than min_samples = "
+                f"{checks.min_samples}"), stacklevel=2)
+            continue
+        grid, filled, missing = _fill_gaps(t[i0:i1], cols[i0:i1], dt)
+        kept.append((k, grid, filled, missing))
+    if not kept:
+        raise DataError(f"{path}: topic {ref_topic}: no piece of at least {checks.min_samples} "
+                        f"samples between the {len(gaps)} gap(s) of more than "
+                        f"{checks.max_gap_samples} missing samples: {_gap_list(gaps)} (pieces of "
+                        f"{', '.join(str(b - a) for a, b in pieces)} samples)")
+    every = np.concatenate([c for _, _, c, _ in kept])
     for j, s in enumerate(specs):
-        check_signal(path, s.topic, s.name, cols[:, j], s, checks)
+        check_signal(path, s.topic, s.name, every[:, j], s, checks)
     ny = len(outputs)
     for j, s in enumerate(outputs):
-        if _constant(cols[:, j], checks):
+        if _constant(every[:, j], checks):
             raise DataError(f"{path}: topic {s.topic}: {s.field}[{s.joint}] ({s.name}) is "
-                            f"constant ({cols[0, j]:.6g}): no response to identify")
-    if all(_constant(cols[:, ny + j], checks) for j in range(len(inputs))):
+                            f"constant ({every[0, j]:.6g}): no response to identify")
+    if all(_constant(every[:, ny + j], checks) for j in range(len(inputs))):
         names = ", ".join(f"{s.topic} {s.field}[{s.joint}]" for s in inputs)
         raise DataError(f"{path}: no excitation: every input is constant ({names})")
-    notes = (f"{missing} missing samples filled by linear interpolation",) if missing else ()
-    seg = make_segment(str(path), t, cols[:, ny:], cols[:, :ny], [s.name for s in inputs],
-                       [s.name for s in outputs])
-    return replace(seg, notes=notes)
+    out = []
+    for k, grid, filled, missing in kept:
+        notes: tuple[str, ...] = ()
+        if split:
+            notes += (f"piece {k} of {len(pieces)} of {path}: t = {grid[0]:.6f} .. "
+                      f"{grid[-1]:.6f} s of the recording (split at gaps of more than "
+                      f"{checks.max_gap_samples} missing samples)",)
+        if missing:
+            notes += (f"{missing} missing samples filled by linear interpolation",)
+        seg = make_segment(f"{path}{SEGMENT_SEP}{k}" if split else str(path), grid,
+                           filled[:, ny:], filled[:, :ny], [s.name for s in inputs],
+                           [s.name for s in outputs])
+        out.append(replace(seg, notes=notes))
+    return out
+
+
+def load_segment(bag: str | Path, inputs: Sequence[SignalSpec], outputs: Sequence[SignalSpec],
+                 checks: Checks | None = None) -> Segment:
+    """:func:`load_bag_segments` for a bag that must give exactly one segment.
+
+    Raises:
+        DataError: as :func:`load_bag_segments`, or when long gaps split the bag into several
+            segments (the message names the gaps).
+    """
+    segs = load_bag_segments(bag, inputs, outputs, checks)
+    if len(segs) > 1:
+        checks = checks or Checks()
+        raise DataError(f"{bag}: topic {outputs[0].topic}: gaps of more than "
+                        f"{checks.max_gap_samples} missing samples split the recording into "
+                        f"{len(segs)} segments ({', '.join(s.name for s in segs)}); read it "
+                        "with load_bag_segments")
+    return segs[0]
 
 
 def check_excitation(segments: Sequence[Segment], checks: Checks | None = None,

@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -239,6 +241,18 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------------------------
 # Plots
+#
+# Drawing cost in matplotlib is mostly per axes, tick and text object, not per point. So the
+# plots lay out with fixed margins instead of a second layout pass (``tight_layout``), place
+# titles at a fixed height, label about six ticks an axis, let one legend serve the
+# cross-correlation panels, draw an overlay only when it differs (final vs baseline), draw long
+# series as their per-pixel min/max envelope (every peak stays, see :func:`envelope`), write
+# log-axis labels without mathtext, and encode the PNGs with fast zlib settings in a background
+# thread while the next figure is drawn (same pixels, somewhat larger files).
+
+_DPI = 110
+_PNG = {"compress_level": 1}
+_SUPERSCRIPT = str.maketrans("0123456789-−", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁻")
 
 
 def _plt():  # type: ignore[no-untyped-def]
@@ -250,46 +264,164 @@ def _plt():  # type: ignore[no-untyped-def]
     return plt
 
 
-def plot_fits(result: IdentificationResult, out: Path) -> list[Path]:
-    """Measured vs simulated (baseline, final) on validation data, one PNG per output."""
+class _PngWriter:
+    """Saves figures: draws in the caller's thread; with ``background`` the PNG encoding (which
+    releases the GIL) runs in one worker thread while the next figure is drawn. :meth:`wait`
+    returns when every file is written (re-raising a failure)."""
+
+    def __init__(self, background: bool = False) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=1) if background else None
+        self._jobs: list[Future[None]] = []
+
+    def __call__(self, fig: Any, path: Path) -> Path:
+        from matplotlib.image import imsave
+
+        fig.set_dpi(_DPI)
+        fig.canvas.draw()
+        rgba = np.array(fig.canvas.buffer_rgba())
+        _plt().close(fig)
+        job = partial(imsave, path, rgba, format="png", dpi=_DPI, pil_kwargs=dict(_PNG))
+        if self._pool is None:
+            job()
+        else:
+            self._jobs.append(self._pool.submit(job))
+        return path
+
+    def wait(self, timeout: float = 120.0) -> None:
+        try:
+            for job in self._jobs:
+                job.result(timeout=timeout)
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _title(ax: Any, text: str) -> None:
+    """Axes title at a fixed height (matplotlib skips its costly search for tick labels that
+    could collide with an automatically placed title; these plots have none on top)."""
+    ax.set_title(text, y=1.0)
+
+
+def _margins(fig: Any, left: float = 0.85, right: float = 0.2, top: float = 0.4,
+             bottom: float = 0.55, hspace: float = 0.6) -> None:
+    """Fixed margins [inch] (like ``tight_layout`` for the labels these plots have) and at most
+    about seven (x) or five (y) labelled ticks on linear axes."""
+    from matplotlib.ticker import AutoLocator, MaxNLocator
+
+    for ax in fig.axes:
+        for axis, nbins in ((ax.xaxis, 7), (ax.yaxis, 5)):
+            if isinstance(axis.get_major_locator(), AutoLocator):
+                axis.set_major_locator(MaxNLocator(nbins=nbins, steps=[1, 2, 2.5, 5, 10]))
+    w, h = fig.get_size_inches()
+    rows = max(len(fig.axes), 1)
+    ax_h = (h - top - bottom - hspace * (rows - 1)) / rows
+    fig.subplots_adjust(left=left / w, right=1 - right / w, top=1 - top / h, bottom=bottom / h,
+                        hspace=hspace / max(ax_h, 1e-3))
+
+
+def _log_label(text: str) -> str:
+    r"""``$\mathdefault{2\times10^{-3}}$`` -> ``2×10⁻³`` (plain text: no mathtext parsing)."""
+    if not (text.startswith("$\\mathdefault{") and text.endswith("}$")):
+        return text
+    inner = text[len("$\\mathdefault{"):-2].replace("\\times", "×").replace("\\;", " ")
+    out, rest = "", inner
+    while "^{" in rest:
+        head, tail = rest.split("^{", 1)
+        exp, rest = tail.split("}", 1)
+        out += head + exp.translate(_SUPERSCRIPT)
+    return out + rest
+
+
+def _plain_log_labels(ax: Any, *, x: bool = False, y: bool = False) -> None:
+    """Log/symlog tick labels (after the scale is set) as plain text (``10⁻³``: the scale's own
+    formatters, their mathtext turned into Unicode); log axes get minor ticks at 2 and 5 per
+    decade."""
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    for on, axis in ((x, ax.xaxis), (y, ax.yaxis)):
+        if not on:
+            continue
+        for minor in (False, True):
+            base = axis.get_minor_formatter() if minor else axis.get_major_formatter()
+            fmt = FuncFormatter(lambda v, pos, f=base: _log_label(f(v, pos)))
+            fmt.set_locs = base.set_locs  # type: ignore[method-assign]
+            (axis.set_minor_formatter if minor else axis.set_major_formatter)(fmt)
+            base.set_axis(axis)
+        if axis.get_scale() == "log":
+            axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+
+
+def envelope(t: NDArray[Any], y: NDArray[Any], bins: int) -> tuple[NDArray[Any], NDArray[Any]]:
+    """Min/max envelope of a long series for plotting: at most ``2 * bins`` points.
+
+    ``t``, ``y``: shape (N,). The samples are cut into ``bins`` runs of equal length; each run
+    keeps its smallest and its largest sample, in time order, at their own times. Drawn as a
+    line at about one run per pixel column, the picture equals that of all N samples (every
+    peak stays). Series with at most ``2 * bins`` samples are returned as they are.
+    """
+    n = y.shape[0]
+    if n <= 2 * bins:
+        return t, y
+    k = -(-n // bins)
+    m = -(-n // k)
+    pad = np.concatenate([y, np.full(m * k - n, y[-1])]).reshape(m, k)
+    base = np.arange(m) * k
+    lo = np.minimum(base + np.argmin(pad, axis=1), n - 1)
+    hi = np.minimum(base + np.argmax(pad, axis=1), n - 1)
+    idx = np.column_stack([np.minimum(lo, hi), np.maximum(lo, hi)]).ravel()
+    return t[idx], y[idx]
+
+
+def plot_fits(result: IdentificationResult, out: Path,
+              save: _PngWriter | None = None) -> list[Path]:
+    """Measured vs simulated (baseline, final) on validation data, one PNG per output.
+
+    Series longer than the figure is wide are drawn as their per-pixel min/max envelope.
+    """
     plt = _plt()
+    save = save or _PngWriter()
     paths = []
     names = result.description.output_names
+    segs = _val_segments(result)
+    both = result.final is not result.baseline
+    width_in, bins_total = 11.0, int(11.0 * _DPI)
+    total = sum(seg.n for seg in segs) or 1
+    offsets, offset = [], 0.0
+    for seg in segs:
+        offsets.append(offset)
+        offset = offset + float(seg.t[-1]) + seg.dt
     for j, name in enumerate(names):
-        fig, axes = plt.subplots(2, 1, figsize=(11, 6.5), sharex=True,
+        fig, axes = plt.subplots(2, 1, figsize=(width_in, 6.5), sharex=True,
                                  gridspec_kw={"height_ratios": [2, 1]})
-        offset = 0.0
-        for k, seg in enumerate(_val_segments(result)):
-            t = seg.t + offset
+        for k, seg in enumerate(segs):
+            t = seg.t + offsets[k]
+            bins = max(bins_total * seg.n // total, 50)
             yb = result.baseline.val_pred[k][:, j]
             yf = result.final.val_pred[k][:, j]
-            axes[0].plot(t, seg.y[:, j], color="0.3", lw=0.8,
-                         label="measured" if k == 0 else None)
-            axes[0].plot(t, yb, color="tab:orange", lw=0.8,
+            first = k == 0
+            axes[0].plot(*envelope(t, seg.y[:, j], bins), color="0.3", lw=0.8,
+                         label="measured" if first else None)
+            axes[0].plot(*envelope(t, yb, bins), color="tab:orange", lw=0.8,
                          label=f"baseline ({result.baseline.val.fit_percent[j]:.1f} %)"
-                         if k == 0 else None)
-            if result.final is not result.baseline:
-                axes[0].plot(t, yf, color="tab:blue", lw=0.8,
+                         if first else None)
+            if both:
+                axes[0].plot(*envelope(t, yf, bins), color="tab:blue", lw=0.8,
                              label=f"final ({result.final.val.fit_percent[j]:.1f} %)"
-                             if k == 0 else None)
-            axes[1].plot(t, seg.y[:, j] - yb, color="tab:orange", lw=0.6,
-                         label="baseline" if k == 0 else None)
-            if result.final is not result.baseline:
-                axes[1].plot(t, seg.y[:, j] - yf, color="tab:blue", lw=0.6,
-                             label="final" if k == 0 else None)
-            offset = t[-1] + seg.dt
+                             if first else None)
+            axes[1].plot(*envelope(t, seg.y[:, j] - yb, bins), color="tab:orange", lw=0.6,
+                         label="baseline" if first else None)
+            if both:
+                axes[1].plot(*envelope(t, seg.y[:, j] - yf, bins), color="tab:blue", lw=0.6,
+                             label="final" if first else None)
         unit = result.description.structure.speed_unit
         axes[0].set_ylabel(f"{name} [{unit}]")
-        axes[0].set_title(f"Validation data: measured vs simulated {name}")
+        _title(axes[0], f"Validation data: measured vs simulated {name}")
         axes[0].legend(loc="upper right")
         axes[1].set_ylabel("residual")
         axes[1].set_xlabel("time [s] (validation segments back to back)")
         axes[1].legend(loc="upper right")
-        fig.tight_layout()
-        p = out / f"fit_{name}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
+        _margins(fig, hspace=0.15)
+        paths.append(save(fig, out / f"fit_{name}.png"))
     return paths
 
 
@@ -297,30 +429,41 @@ def _val_segments(result: IdentificationResult) -> list[Any]:
     return list(result.val_segments)
 
 
-def plot_residuals(result: IdentificationResult, out: Path) -> list[Path]:
+def _stems(ax: Any, x: NDArray[Any], y: NDArray[Any], color: str, label: str) -> None:
+    """Stem plot (as ``Axes.stem``) from one line collection and one marker line."""
+    ax.vlines(x, 0.0, y, colors=color, lw=1.0)
+    ax.plot(x, y, "o", color=color, label=label)
+
+
+def plot_residuals(result: IdentificationResult, out: Path,
+                   save: _PngWriter | None = None) -> list[Path]:
     """ACF (with the white bound) and CCF per input (Bartlett and white bounds), validation
-    data, baseline and final; one PNG per output."""
+    data, baseline and final (one set of stems when the final model is the baseline); one PNG
+    per output. The CCF panels share one legend."""
     plt = _plt()
+    save = save or _PngWriter()
     paths = []
+    both = result.final is not result.baseline
     for rb, rf in zip(result.baseline.resid_val, result.final.resid_val, strict=True):
         inputs = list(rf.ccf)
-        fig, axes = plt.subplots(1 + len(inputs), 1, figsize=(9, 2.8 * (1 + len(inputs))))
+        fig, axes = plt.subplots(1 + len(inputs), 1, figsize=(9, 2.6 * (1 + len(inputs))))
         axes = np.atleast_1d(axes)
+        for ax in axes[1:-1]:  # the cross-correlation panels share the lag axis
+            ax.sharex(axes[-1])
+            ax.tick_params(labelbottom=False)
         lags = np.arange(rf.lags + 1)
-        axes[0].stem(lags, rb.acf, linefmt="C1-", markerfmt="C1o", basefmt=" ",
-                     label="baseline")
-        axes[0].stem(lags + 0.25, rf.acf, linefmt="C0-", markerfmt="C0o", basefmt=" ",
-                     label="final")
+        _stems(axes[0], lags, rb.acf, "C1", "baseline" if both else "baseline (= final)")
+        if both:
+            _stems(axes[0], lags + 0.25, rf.acf, "C0", "final")
         axes[0].axhspan(-rf.acf_bound, rf.acf_bound, color="0.85", label="99 % (white)")
-        axes[0].set_title(f"{rf.output}: residual autocorrelation (validation); Ljung-Box p "
-                          f"= {rf.ljung_box_p:.2g} (final)")
+        _title(axes[0], f"{rf.output}: residual autocorrelation (validation); Ljung-Box p "
+                f"= {rf.ljung_box_p:.2g} (final)")
         axes[0].legend(loc="upper right", fontsize=8)
         cl = np.arange(-rf.lags, rf.lags + 1)
-        for ax, name in zip(axes[1:], inputs, strict=True):
-            ax.stem(cl, rb.ccf[name], linefmt="C1-", markerfmt="C1o", basefmt=" ",
-                    label="baseline")
-            ax.stem(cl + 0.25, rf.ccf[name], linefmt="C0-", markerfmt="C0o", basefmt=" ",
-                    label="final")
+        for i, (ax, name) in enumerate(zip(axes[1:], inputs, strict=True)):
+            _stems(ax, cl, rb.ccf[name], "C1", "baseline" if both else "baseline (= final)")
+            if both:
+                _stems(ax, cl + 0.25, rf.ccf[name], "C0", "final")
             ax.axhspan(-rf.ccf_bound[name], rf.ccf_bound[name], color="0.85",
                        label="99 % Bartlett, all lags (test)")
             ax.axhline(rf.ccf_bound_per_lag[name], color="0.5", ls="--", lw=0.8,
@@ -328,50 +471,54 @@ def plot_residuals(result: IdentificationResult, out: Path) -> list[Path]:
             ax.axhline(-rf.ccf_bound_per_lag[name], color="0.5", ls="--", lw=0.8)
             ax.axhline(rf.ccf_bound_white, color="r", ls=":", lw=0.8, label="z/sqrt(N) (white)")
             ax.axhline(-rf.ccf_bound_white, color="r", ls=":", lw=0.8)
-            ax.set_title(f"cross-correlation residual {rf.output} vs input {name} "
-                         f"(lag > 0: residual after input)")
-            ax.legend(loc="upper right", fontsize=8)
+            _title(ax, f"cross-correlation residual {rf.output} vs input {name} "
+                   f"(lag > 0: residual after input)")
+            if i == 0:
+                ax.legend(loc="upper right", fontsize=8,
+                          title="(all cross-correlation panels)", title_fontsize=8)
         axes[-1].set_xlabel("lag [samples]")
-        fig.tight_layout()
-        p = out / f"resid_{rf.output}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
+        _margins(fig, left=0.7, hspace=0.55, bottom=0.5)
+        paths.append(save(fig, out / f"resid_{rf.output}.png"))
     return paths
 
 
-def plot_spectrum(result: IdentificationResult, out: Path) -> list[Path]:
-    """Welch PSD of the validation residual, baseline vs final, one PNG per output."""
+def plot_spectrum(result: IdentificationResult, out: Path,
+                  save: _PngWriter | None = None) -> list[Path]:
+    """Welch PSD of the validation residual, baseline vs final (one line when the final model
+    is the baseline), one PNG per output."""
     plt = _plt()
+    save = save or _PngWriter()
     paths = []
+    both = result.final is not result.baseline
     for j, name in enumerate(result.description.output_names):
         fig, ax = plt.subplots(figsize=(9, 4))
         sb, sf = result.baseline.spectrum_val[j], result.final.spectrum_val[j]
-        ax.semilogy(sb.freq[1:], sb.psd[1:], color="tab:orange", lw=0.8, label="baseline")
-        ax.semilogy(sf.freq[1:], sf.psd[1:], color="tab:blue", lw=0.8, label="final")
+        ax.loglog(sb.freq[1:], sb.psd[1:], color="tab:orange", lw=0.8,
+                  label="baseline" if both else "baseline (= final)")
+        if both:
+            ax.loglog(sf.freq[1:], sf.psd[1:], color="tab:blue", lw=0.8, label="final")
         ax.axvline(sf.peak_hz, color="k", ls=":", lw=0.8, label=f"peak {sf.peak_hz:.3g} Hz")
-        ax.set_xscale("log")
+        _plain_log_labels(ax, x=True, y=True)
         ax.set_xlabel("frequency [Hz]")
         ax.set_ylabel("PSD")
-        ax.set_title(f"{name}: validation residual spectrum")
+        _title(ax, f"{name}: validation residual spectrum")
         ax.legend()
-        fig.tight_layout()
-        p = out / f"spectrum_{name}.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
+        _margins(fig, left=0.8)
+        paths.append(save(fig, out / f"spectrum_{name}.png"))
     return paths
 
 
-def plot_candidates(result: IdentificationResult, out: Path) -> Path | None:
+def plot_candidates(result: IdentificationResult, out: Path,
+                    save: _PngWriter | None = None) -> Path | None:
     """Projected scores (R^2, %) of every candidate per round, accepted ones highlighted."""
     if not result.rounds:
         return None
     plt = _plt()
+    save = save or _PngWriter()
     accepted = {(d.round, d.score.label) for d in result.accepted}
+    longest = max(len(r) for r in result.rounds)
     fig, axes = plt.subplots(len(result.rounds), 1,
-                             figsize=(9, 2.2 + 0.35 * max(len(r) for r in result.rounds)
-                                      * len(result.rounds)))
+                             figsize=(9, 2.2 + 0.35 * longest * len(result.rounds)))
     axes = np.atleast_1d(axes)
     for i, (ax, rnd) in enumerate(zip(axes, result.rounds, strict=True)):
         labels = [s.label for s in rnd][::-1]
@@ -379,18 +526,19 @@ def plot_candidates(result: IdentificationResult, out: Path) -> Path | None:
         colors = ["tab:green" if (i + 1, s.label) in accepted else "0.6" for s in rnd][::-1]
         ax.barh(labels, vals, color=colors)
         ax.set_xscale("symlog", linthresh=0.1)
-        ax.set_title(f"round {i + 1}: residual SS explained after projection [%] "
-                     "(green = accepted)")
-    fig.tight_layout()
-    p = out / "candidates.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+        _plain_log_labels(ax, x=True)
+        _title(ax, f"round {i + 1}: residual SS explained after projection [%] "
+               "(green = accepted)")
+    width = max((len(s.label) for r in result.rounds for s in r), default=10)
+    _margins(fig, left=0.4 + 0.085 * width, top=0.35, bottom=0.4, hspace=0.55)
+    return save(fig, out / "candidates.png")
 
 
-def plot_linear(result: IdentificationResult, out: Path) -> Path:
+def plot_linear(result: IdentificationResult, out: Path,
+                save: _PngWriter | None = None) -> Path:
     """Step response and Bode magnitude/phase of the final model's linear part (C = I)."""
     plt = _plt()
+    save = save or _PngWriter()
     A, B = result.final.linear()
     nx, nu = B.shape
     ins = result.description.input_names
@@ -403,34 +551,34 @@ def plot_linear(result: IdentificationResult, out: Path) -> Path:
     w = np.logspace(np.log10(max(slow, 1e-3) / 20), np.log10(max(fast, 1e-2) * 20), 400)
     fig, axes = plt.subplots(3, 1, figsize=(9, 9))
     Ad, Gd = zoh(A, float(t[1] - t[0]))
+    H = _freq_all(A, B, w)  # (len(w), nx, nu)
     for i in range(nu):
         d = np.tile(Gd @ B[:, i], (t.size, 1))
         yy = simulate_linear(Ad, d, np.zeros(nx))
         for j in range(nx):
             axes[0].plot(t, yy[:, j], label=f"{ins[i]} -> {outs[j]}")
-            Hj = _freq(A, B[:, i], j, w)
+            Hj = H[:, j, i]
             axes[1].loglog(w / (2 * np.pi), np.abs(Hj), label=f"{ins[i]} -> {outs[j]}")
             axes[2].semilogx(w / (2 * np.pi), np.degrees(np.unwrap(np.angle(Hj))))
-    axes[0].set_title("linear part of the final model: unit-step response")
+    _plain_log_labels(axes[1], x=True, y=True)
+    _plain_log_labels(axes[2], x=True)
+    _title(axes[0], "linear part of the final model: unit-step response")
     axes[0].set_xlabel("time [s]")
     axes[0].legend(fontsize=8)
-    axes[1].set_title("Bode magnitude")
+    _title(axes[1], "Bode magnitude")
     axes[1].set_ylabel("|H|")
     axes[2].set_ylabel("phase [deg]")
     axes[2].set_xlabel("frequency [Hz]")
-    fig.tight_layout()
-    p = out / "linear_step_bode.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    _margins(fig, hspace=0.75)
+    return save(fig, out / "linear_step_bode.png")
 
 
-def _freq(A: Array, b: Array, j: int, w: Array) -> NDArray[np.complex128]:
+def _freq_all(A: Array, B: Array, w: Array) -> NDArray[np.complex128]:
+    """Frequency response ``(j w I - A)^-1 B`` of shape (len(w), nx, nu)."""
     nx = A.shape[0]
-    out = np.empty(w.size, dtype=complex)
-    for k, wk in enumerate(w):
-        out[k] = np.linalg.solve(1j * wk * np.eye(nx) - A, b)[j]
-    return out
+    M = 1j * w[:, None, None] * np.eye(nx)[None] - A[None]
+    return np.asarray(np.linalg.solve(M, np.broadcast_to(B, (w.size, *B.shape))),
+                      dtype=np.complex128)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -539,14 +687,18 @@ def write_report(result: IdentificationResult, out_dir: str | Path) -> dict[str,
     jp.write_text(json.dumps(rep, indent=2, allow_nan=False) + "\n")
     paths["json"] = jp
     plots: list[Path] = []
-    if result.val_segments:
-        plots += plot_fits(result, out)
-    plots += plot_residuals(result, out)
-    plots += plot_spectrum(result, out)
-    cp = plot_candidates(result, out)
-    if cp is not None:
-        plots.append(cp)
-    plots.append(plot_linear(result, out))
+    save = _PngWriter(background=True)
+    try:
+        if result.val_segments:
+            plots += plot_fits(result, out, save)
+        plots += plot_residuals(result, out, save)
+        plots += plot_spectrum(result, out, save)
+        cp = plot_candidates(result, out, save)
+        if cp is not None:
+            plots.append(cp)
+        plots.append(plot_linear(result, out, save))
+    finally:
+        save.wait()
     for p in plots:
         paths[f"plots:{p.name}"] = p
     mp = out / "report.md"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from dvt_identify.data import (
     Checks,
+    DataWarning,
     JointStateSeries,
     SignalSpec,
     check_excitation,
@@ -75,11 +77,12 @@ def test_alignment_drops_unmatched_samples_and_fills_short_gaps(tmp_path: Path) 
 @pytest.mark.parametrize("problem,match", [
     ("nan", r"/a/joint_states: velocity\[shaft\] is nan at message 7"),
     ("order", r"/a/currents: stamps not strictly increasing at message 50"),
-    ("gap", r"/a/joint_states: gap of 0.05 s \(49 missing samples\)"),
+    ("gap", r"/a/joint_states: no piece of at least 250 samples between the 1 gap\(s\) of more "
+            r"than 3 missing samples: 0.05 s \(49 missing samples\) after t = 0.199000 s"),
     ("saturated", r"effort\[motor\] \(current\) is saturated"),
     ("short", r"too little data: 400 aligned samples"),
     ("constant", r"no excitation: every input is constant"),
-    ("topic", r"topic /a/currents: not in bag"),
+    ("topic", r"topic /a/currents missing \(topics present: \['/a/joint_states'"),
     ("joint", r"joint 'motor' not in name list"),
 ])
 def test_data_checks_name_bag_topic_and_problem(tmp_path: Path, problem: str,
@@ -102,6 +105,7 @@ def test_data_checks_name_bag_topic_and_problem(tmp_path: Path, problem: str,
         keep[200:249] = False
         topics["/a/joint_states"] = JointStateSeries(js.stamps_ns[keep], js.names,
                                                      velocity=js.velocity[keep])
+        checks = Checks(min_samples=250)  # both pieces (200 and 151 samples) too short
     elif problem == "saturated":
         inputs = [SignalSpec("current", "/a/currents", "effort", "motor",
                              saturation=(-0.9, 0.9))]
@@ -116,7 +120,8 @@ def test_data_checks_name_bag_topic_and_problem(tmp_path: Path, problem: str,
         topics["/a/currents"] = JointStateSeries(cu.stamps_ns, ("m2", "brake"),
                                                  effort=cu.effort)
     bag = _bag(tmp_path, topics)
-    with pytest.raises(DataError, match=match) as info:
+    with pytest.raises(DataError, match=match) as info, warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
         load_segment(bag, inputs, OUT, checks)
     assert str(bag) in str(info.value)
 
@@ -125,7 +130,10 @@ def test_unreadable_bag_and_existing_output(tmp_path: Path) -> None:
     with pytest.raises(DataError, match="bag not found"):
         load_segment(tmp_path / "nope", IN, OUT)
     (tmp_path / "junk").mkdir()
-    with pytest.raises(DataError, match="cannot open bag"):
+    with pytest.raises(DataError, match="junk: not a readable bag: metadata.yaml is missing"):
+        load_segment(tmp_path / "junk", IN, OUT)
+    (tmp_path / "junk" / "metadata.yaml").write_text("not: [a bag")
+    with pytest.raises(DataError, match="junk: cannot open bag"):
         load_segment(tmp_path / "junk", IN, OUT)
     bag = _bag(tmp_path, _series())
     with pytest.raises(DataError, match="already exists"):

@@ -8,6 +8,13 @@ currents [A] of ``("drive_motor", "brake1", "brake2", "brake3")`` in ``effort``)
 
 Pure module: uses ``rosbags`` (no rclpy). Every problem raises :class:`~dvt_model.errors.BagError`
 naming the bag path, the topic and the field.
+
+Reading (:func:`read_topics`) is one pass over the bag for all wanted topics: an indexed MCAP file
+is read through its summary and message indexes (numpy, no per-message loop; rosbags' chunk
+decompression and checksum check), any other storage or anything unexpected through the rosbags
+message iterator. Each topic is then decoded in bulk: messages with the byte layout of the
+topic's first message (same length, same bytes apart from the stamp and the float arrays) are
+sliced with numpy, the others decoded one by one with the same checks and errors.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 import yaml
@@ -121,41 +128,58 @@ class _JointStateFields(NamedTuple):
     effort: tuple[float, ...]
 
 
-def _parse_joint_state(raw: bytes | memoryview) -> _JointStateFields:
-    """Decode little-endian CDR of a JointState (fast path; any doubt falls back to rosbags)."""
-    buf = bytes(raw)
-    try:
-        if buf[:2] != _CDR_LE[:2]:
-            raise ValueError("not little-endian CDR")
-        sec, nanosec = _UNPACK_STAMP(buf, 4)
-        pos = 12
-        (n,) = _UNPACK_U32(buf, pos)  # frame_id
+class _CdrLayout(NamedTuple):
+    """Where the parts of one little-endian CDR JointState lie (byte offsets into the message).
+
+    ``arrays``: ``(offset, count)`` of ``position``, ``velocity`` and ``effort`` (float64).
+    The stamp is always at bytes 4..12 (int32 sec, uint32 nanosec).
+    """
+
+    names: tuple[str, ...]
+    arrays: tuple[tuple[int, int], ...]
+
+
+def _cdr_layout(buf: bytes) -> _CdrLayout:
+    """Layout of little-endian CDR ``buf``; raises ValueError/struct.error/UnicodeDecodeError."""
+    if buf[:2] != _CDR_LE[:2]:
+        raise ValueError("not little-endian CDR")
+    pos = 12
+    (n,) = _UNPACK_U32(buf, pos)  # frame_id
+    pos += 4 + n
+    pos += -(pos - 4) % 4
+    (count,) = _UNPACK_U32(buf, pos)
+    pos += 4
+    names: list[str] = []
+    for _ in range(count):
+        pos += -(pos - 4) % 4
+        (n,) = _UNPACK_U32(buf, pos)
+        if n < 1 or pos + 4 + n > len(buf):
+            raise ValueError("bad string")
+        names.append(buf[pos + 4:pos + 3 + n].decode())
         pos += 4 + n
+    arrays: list[tuple[int, int]] = []
+    for _ in range(3):
         pos += -(pos - 4) % 4
         (count,) = _UNPACK_U32(buf, pos)
         pos += 4
-        names: list[str] = []
-        for _ in range(count):
-            pos += -(pos - 4) % 4
-            (n,) = _UNPACK_U32(buf, pos)
-            if n < 1 or pos + 4 + n > len(buf):
-                raise ValueError("bad string")
-            names.append(buf[pos + 4:pos + 3 + n].decode())
-            pos += 4 + n
-        arrays: list[tuple[float, ...]] = []
-        for _ in range(3):
-            pos += -(pos - 4) % 4
-            (count,) = _UNPACK_U32(buf, pos)
-            pos += 4
-            if count:
-                pos += -(pos - 4) % 8
-                if pos + 8 * count > len(buf):
-                    raise ValueError("truncated array")
-                arrays.append(struct.unpack_from(f"<{count}d", buf, pos))
-                pos += 8 * count
-            else:
-                arrays.append(())
-        return _JointStateFields(sec * 1_000_000_000 + nanosec, tuple(names), *arrays)
+        if count:
+            pos += -(pos - 4) % 8
+            if pos + 8 * count > len(buf):
+                raise ValueError("truncated array")
+        arrays.append((pos, count))
+        pos += 8 * count
+    return _CdrLayout(tuple(names), tuple(arrays))
+
+
+def _parse_joint_state(raw: bytes | memoryview) -> _JointStateFields:
+    """Decode CDR of a JointState (fast path for little endian; any doubt falls back to rosbags)."""
+    buf = bytes(raw)
+    try:
+        lay = _cdr_layout(buf)
+        sec, nanosec = _UNPACK_STAMP(buf, 4)
+        pos, vel, eff = (struct.unpack_from(f"<{c}d", buf, o) if c else ()
+                         for o, c in lay.arrays)
+        return _JointStateFields(sec * 1_000_000_000 + nanosec, lay.names, pos, vel, eff)
     except (ValueError, struct.error, UnicodeDecodeError):
         msg: Any = typestore().deserialize_cdr(buf, JOINT_STATE_TYPE)
         return _JointStateFields(_stamp_ns(msg), tuple(msg.name),
@@ -274,13 +298,15 @@ class TopicSeries(NamedTuple):
     """All messages of one JointState topic, in recorded order.
 
     ``stamps_ns`` (N,) int64 header stamps [ns]; ``names`` joint names (identical in every
-    message); ``velocity`` (N, k) and ``effort`` (N, m) with k, m in {0, len(names)}.
+    message); ``velocity`` (N, k), ``effort`` (N, m) and ``position`` (N, p) with k, m, p in
+    {0, len(names)}.
     """
 
     stamps_ns: Int1D
     names: tuple[str, ...]
     velocity: Float2D
     effort: Float2D
+    position: Float2D
 
 
 @dataclass(frozen=True)
@@ -336,73 +362,333 @@ def _stamp_ns(msg: Any) -> int:
     return int(st.sec) * 1_000_000_000 + int(st.nanosec)
 
 
-def _read_series(reader: Reader, path: Path, topic: str) -> TopicSeries:
-    conns = [c for c in reader.connections if c.topic == topic]
-    if not conns:
-        present = sorted({c.topic for c in reader.connections})
-        raise BagError(f"{path}: topic {topic} missing (topics present: {present})")
-    for c in conns:
-        if c.msgtype != JOINT_STATE_TYPE:
-            raise BagError(f"{path}: topic {topic}: type is {c.msgtype}, expected "
-                           f"{JOINT_STATE_TYPE}")
-    stamps: list[int] = []
-    vel: list[tuple[float, ...]] = []
-    eff: list[tuple[float, ...]] = []
-    names: tuple[str, ...] | None = None
+# --------------------------------------------------------------------------------------------
+# Reading: one pass over the bag collects the raw CDR of every wanted topic, then each topic is
+# decoded in bulk (numpy on the stacked bytes); messages that do not share the layout of the
+# topic's first message are decoded one by one (same checks, same errors).
+
+
+class _RawMessages(NamedTuple):
+    """Raw CDR messages of one topic in recorded order.
+
+    Message ``i`` is ``buf[starts[i]:starts[i] + lengths[i]]``; ``buf`` (B,) uint8, ``starts``
+    and ``lengths`` (N,) int64.
+    """
+
+    buf: NDArray[np.uint8]
+    starts: Int1D
+    lengths: Int1D
+
+
+def _raw_from_list(raws: Sequence[bytes]) -> _RawMessages:
+    lengths = np.fromiter(map(len, raws), dtype=np.int64, count=len(raws))
+    starts = np.zeros_like(lengths)
+    np.cumsum(lengths[:-1], out=starts[1:])
+    return _RawMessages(np.frombuffer(b"".join(raws), dtype=np.uint8), starts, lengths)
+
+
+def _rows(buf: NDArray[np.uint8], starts: Int1D, width: int) -> NDArray[np.uint8]:
+    """(len(starts), width) copy of the bytes ``buf[s:s + width]`` for every ``s`` in ``starts``."""
+    if starts.size == 0:
+        return np.zeros((0, width), dtype=np.uint8)
+    windows = np.lib.stride_tricks.sliding_window_view(buf, width)
+    return np.asarray(windows[starts])
+
+
+def _as(rows: NDArray[np.uint8], dtype: str) -> NDArray[Any]:
+    """Reinterpret each row of ``rows`` (n, k * itemsize) bytes as k values of ``dtype``."""
+    return np.ascontiguousarray(rows).view(dtype)
+
+
+class _McapFastPathError(Exception):
+    """The MCAP fast path does not apply (no summary or index, odd record); rosbags reads."""
+
+
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_UNPACK_Q = struct.Struct("<Q").unpack_from
+_UNPACK_H = struct.Struct("<H").unpack_from
+
+
+class _McapChunk(NamedTuple):
+    start: int  # file offset of the chunk record
+    length: int  # chunk record length (with opcode and length prefix)
+    index_offsets: dict[int, int]  # channel id -> file offset of its message index record
+    index_length: int  # bytes of message index records after the chunk
+
+
+class _McapSummary(NamedTuple):
+    topics: dict[int, str]  # channel id -> topic
+    chunks: list[_McapChunk]
+    counts: dict[int, int]  # channel id -> message count (statistics record)
+
+
+def _mcap_string(buf: bytes, pos: int) -> tuple[str, int]:
+    (n,) = _UNPACK_U32(buf, pos)
+    return buf[pos + 4:pos + 4 + n].decode(), pos + 4 + n
+
+
+def _mcap_summary(fh: BinaryIO) -> _McapSummary:
+    """Channels, chunk indexes and message counts from the summary section of an MCAP file."""
+    size = fh.seek(0, 2)
+    if size < 45:
+        raise _McapFastPathError("file too short")
+    fh.seek(size - 37)
+    tail = fh.read(37)
+    if tail[-8:] != _MCAP_MAGIC or tail[0] != 0x02:
+        raise _McapFastPathError("no footer")
+    summary_start, offsets_start = struct.unpack_from("<QQ", tail, 9)
+    if summary_start == 0:
+        raise _McapFastPathError("no summary")
+    end = offsets_start or size - 37
+    fh.seek(summary_start)
+    blob = fh.read(end - summary_start)
+    topics: dict[int, str] = {}
+    chunks: list[_McapChunk] = []
+    counts: dict[int, int] | None = None
+    pos = 0
+    while pos < len(blob):
+        op = blob[pos]
+        (n,) = _UNPACK_Q(blob, pos + 1)
+        body = pos + 9
+        pos = body + n
+        if op == 0x04:  # channel: id, schema id, topic, ...
+            (cid,) = _UNPACK_H(blob, body)
+            topics[cid], _ = _mcap_string(blob, body + 4)
+        elif op == 0x08:  # chunk index
+            start, length = struct.unpack_from("<QQ", blob, body + 16)
+            (maplen,) = _UNPACK_U32(blob, body + 32)
+            idx = dict(struct.iter_unpack("<HQ", blob[body + 36:body + 36 + maplen]))
+            (index_length,) = _UNPACK_Q(blob, body + 36 + maplen)
+            chunks.append(_McapChunk(start, length, idx, index_length))
+        elif op == 0x0B:  # statistics: ..., channel message counts
+            (maplen,) = _UNPACK_U32(blob, body + 42)
+            counts = dict(struct.iter_unpack("<HQ", blob[body + 46:body + 46 + maplen]))
+    if counts is None or not chunks:
+        raise _McapFastPathError("no statistics or no chunk index")
+    return _McapSummary(topics, chunks, counts)
+
+
+def _mcap_collect(files: Sequence[Path], topics: Sequence[str]) -> dict[str, _RawMessages]:
+    """Raw messages of ``topics`` from indexed MCAP ``files`` without a per-message loop.
+
+    Uses the summary (chunk indexes, statistics) and each chunk's message index; every record
+    found is checked (opcode, channel, bounds) and the counts must equal the statistics, else
+    :class:`_McapFastPathError` is raised and the caller reads with rosbags instead.
+    """
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    pieces: list[NDArray[np.uint8]] = []
+    base = 0
+    found: dict[str, list[tuple[Int1D, Int1D, Int1D]]] = {t: [] for t in topics}
+    for f in files:
+        with f.open("rb") as fh:
+            summary = _mcap_summary(fh)
+            wanted = {cid: t for cid, t in summary.topics.items() if t in found}
+            seen = dict.fromkeys(wanted, 0)
+            for chunk in summary.chunks:
+                ids = [cid for cid in chunk.index_offsets if cid in wanted]
+                if not ids:
+                    continue
+                fh.seek(chunk.start)
+                blob = fh.read(chunk.length + chunk.index_length)
+                if len(blob) != chunk.length + chunk.index_length or blob[0] != 0x06:
+                    raise _McapFastPathError("bad chunk record")
+                usize, crc, clen = struct.unpack_from("<QII", blob, 25)
+                compression = blob[41:41 + clen].decode()
+                (rlen,) = _UNPACK_Q(blob, 41 + clen)
+                rstart = 49 + clen
+                if rstart + rlen > chunk.length:
+                    raise _McapFastPathError("chunk records exceed the chunk")
+                data = blob[rstart:rstart + rlen]
+                try:
+                    records = np.frombuffer(decompress(data, compression, usize, crc),
+                                            dtype=np.uint8)
+                except ReaderError as exc:
+                    raise _McapFastPathError(str(exc)) from exc
+                for cid in ids:
+                    ipos = chunk.index_offsets[cid] - chunk.start
+                    if not 0 <= ipos <= len(blob) - 15 or blob[ipos] != 0x07 or \
+                            _UNPACK_H(blob, ipos + 9)[0] != cid:
+                        raise _McapFastPathError("bad message index")
+                    (ilen,) = _UNPACK_U32(blob, ipos + 11)
+                    if ilen % 16 or ipos + 15 + ilen > len(blob):
+                        raise _McapFastPathError("bad message index length")
+                    entries = np.frombuffer(blob, dtype="<u8", count=ilen // 8,
+                                            offset=ipos + 15).reshape(-1, 2)
+                    offs = entries[:, 1].astype(np.int64)
+                    if offs.size and (offs.min() < 0 or offs.max() + 31 > records.size):
+                        raise _McapFastPathError("message index offset out of range")
+                    head = _rows(records, offs, 31)  # opcode, length, channel, seq, times
+                    reclen = _as(head[:, 1:9], "<u8")[:, 0].astype(np.int64)
+                    if (np.any(head[:, 0] != 0x05) or np.any(_as(head[:, 9:11], "<u2") != cid)
+                            or np.any(reclen < 22) or np.any(offs + 9 + reclen > records.size)):
+                        raise _McapFastPathError("message index does not point at messages")
+                    log_time = _as(head[:, 15:23], "<u8")[:, 0].astype(np.int64)
+                    found[wanted[cid]].append((log_time, base + offs + 31, reclen - 22))
+                    seen[cid] += offs.size
+                pieces.append(records)
+                base += records.size
+            if any(seen[cid] != summary.counts.get(cid, 0) for cid in wanted):
+                raise _McapFastPathError("message indexes disagree with the statistics")
+    buf = np.concatenate(pieces) if pieces else np.zeros(0, dtype=np.uint8)
+    out: dict[str, _RawMessages] = {}
+    for topic, parts in found.items():
+        if not parts:
+            out[topic] = _RawMessages(buf, np.zeros(0, np.int64), np.zeros(0, np.int64))
+            continue
+        log_time, starts, lengths = (np.concatenate(x) for x in zip(*parts, strict=True))
+        order = np.lexsort((starts, log_time))  # log time, ties in file order (as rosbags)
+        out[topic] = _RawMessages(buf, starts[order], lengths[order])
+    return out
+
+
+def _mcap_files(path: Path) -> list[Path] | None:
+    """The MCAP files of a bag directory (``None``: other storage, or compressed files)."""
     try:
-        for i, (_, _, raw) in enumerate(reader.messages(connections=conns)):
-            try:
-                msg = _parse_joint_state(raw)
-            except Exception as exc:
-                raise BagError(f"{path}: topic {topic}: message {i} is not a valid "
-                               f"{JOINT_STATE_TYPE}: {exc}") from exc
-            msg_names = msg.names
-            if names is None:
-                names = msg_names
-            elif msg_names != names:
-                raise BagError(f"{path}: topic {topic}: field 'name' of message {i} is "
-                               f"{list(msg_names)}, message 0 has {list(names)}")
-            stamps.append(msg.stamp_ns)
-            vel.append(msg.velocity)
-            eff.append(msg.effort)
-    except ReaderError as exc:
-        raise BagError(f"{path}: topic {topic}: cannot read messages: {exc}") from exc
-    if names is None:
+        meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        if meta.get("storage_identifier") != "mcap" or \
+                str(meta.get("compression_mode") or "").lower() not in ("", "none"):
+            return None
+        return [path / Path(str(x)).name for x in meta["relative_file_paths"]]
+    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def _collect(reader: Reader, path: Path, topics: Sequence[str]) -> dict[str, _RawMessages]:
+    """Check that ``topics`` are JointState topics of the bag; return their raw messages."""
+    conns = [c for c in reader.connections if c.topic in topics]
+    for topic in topics:
+        mine = [c for c in conns if c.topic == topic]
+        if not mine:
+            listed = sorted({c.topic for c in reader.connections})
+            raise BagError(f"{path}: topic {topic} missing (topics present: {listed})")
+        for c in mine:
+            if c.msgtype != JOINT_STATE_TYPE:
+                raise BagError(f"{path}: topic {topic}: type is {c.msgtype}, expected "
+                               f"{JOINT_STATE_TYPE}")
+    files = _mcap_files(path)
+    if files is not None:
+        try:
+            return _mcap_collect(files, topics)
+        except (_McapFastPathError, OSError, ValueError, struct.error, UnicodeDecodeError):
+            pass  # rosbags reads it (and reports what is wrong with it)
+    raws: dict[str, list[bytes]] = {t: [] for t in topics}
+    try:
+        for conn, _, raw in reader.messages(connections=conns):
+            raws[conn.topic].append(raw)
+    except Exception as exc:  # ReaderError, or a decompressor's error on corrupt storage
+        which = ", ".join(topics)
+        raise BagError(f"{path}: topic{'s' if len(topics) > 1 else ''} {which}: cannot read "
+                       f"messages: {exc}") from exc
+    return {t: _raw_from_list(r) for t, r in raws.items()}
+
+
+def _message(raw: _RawMessages, i: int) -> bytes:
+    s = int(raw.starts[i])
+    return raw.buf[s:s + int(raw.lengths[i])].tobytes()
+
+
+def _parse_at(path: Path, topic: str, raw: _RawMessages, i: int) -> _JointStateFields:
+    try:
+        return _parse_joint_state(_message(raw, i))
+    except Exception as exc:
+        raise BagError(f"{path}: topic {topic}: message {i} is not a valid "
+                       f"{JOINT_STATE_TYPE}: {exc}") from exc
+
+
+_SERIES_FIELDS = ("velocity", "effort", "position")  # order of the length checks
+
+
+def _decode(path: Path, topic: str, raw: _RawMessages) -> TopicSeries:
+    """Decode the JointState messages of ``topic``.
+
+    Messages with the byte length of message 0 and the same bytes outside the stamp and the
+    float arrays (same frame_id, names, array lengths) are decoded in bulk; every other message
+    by :func:`_parse_joint_state`. Raises :class:`BagError` naming the message index and field
+    for an undecodable message, changing names or a wrong array length.
+    """
+    n = int(raw.lengths.size)
+    if n == 0:
         raise BagError(f"{path}: topic {topic} has no messages")
-    return TopicSeries(np.asarray(stamps, dtype=np.int64), names,
-                       _stack(path, topic, "velocity", vel, len(names)),
-                       _stack(path, topic, "effort", eff, len(names)))
+    first = _message(raw, 0)
+    msg0 = _parse_at(path, topic, raw, 0)
+    names = msg0.names
+    width = {"position": len(msg0.position), "velocity": len(msg0.velocity),
+             "effort": len(msg0.effort)}
+    stamps = np.empty(n, dtype=np.int64)
+    values = {f: np.empty((n, k)) for f, k in width.items()}
+    bulk = np.zeros(n, dtype=bool)
+    try:
+        layout: _CdrLayout | None = _cdr_layout(first)
+    except (ValueError, struct.error, UnicodeDecodeError):
+        layout = None  # message 0 needs rosbags: decode every message singly
+    if layout is not None:
+        size = len(first)
+        cand = np.flatnonzero(raw.lengths == size)
+        rows = _rows(raw.buf, raw.starts[cand], size)
+        fixed = np.ones(size, dtype=bool)
+        fixed[4:12] = False
+        for off, count in layout.arrays:
+            fixed[off:off + 8 * count] = False
+        same = ~np.any((rows != np.frombuffer(first, dtype=np.uint8)) & fixed, axis=1)
+        cand, rows = cand[same], rows[same]
+        bulk[cand] = True
+        stamps[cand] = (_as(rows[:, 4:8], "<i4")[:, 0].astype(np.int64) * 1_000_000_000
+                        + _as(rows[:, 8:12], "<u4")[:, 0])
+        for fname, (off, count) in zip(("position", "velocity", "effort"), layout.arrays,
+                                       strict=True):
+            if count:
+                values[fname][cand] = _as(rows[:, off:off + 8 * count], "<f8")
+    lengths = {f: np.full(n, k, dtype=np.int64) for f, k in width.items()}
+    for i in np.flatnonzero(~bulk).tolist():
+        msg = _parse_at(path, topic, raw, i)
+        if msg.names != names:
+            raise BagError(f"{path}: topic {topic}: field 'name' of message {i} is "
+                           f"{list(msg.names)}, message 0 has {list(names)}")
+        stamps[i] = msg.stamp_ns
+        for fname in width:
+            row = getattr(msg, fname)
+            lengths[fname][i] = len(row)
+            if len(row) == width[fname]:
+                values[fname][i] = row
+    for fname in _SERIES_FIELDS:
+        k = width[fname]
+        if k not in (0, len(names)):
+            raise BagError(f"{path}: topic {topic}: field '{fname}' of message 0 has {k} "
+                           f"values, expected 0 or {len(names)} (one per name)")
+        bad = np.flatnonzero(lengths[fname] != k)
+        if bad.size:
+            i = int(bad[0])
+            raise BagError(f"{path}: topic {topic}: field '{fname}' of message {i} has "
+                           f"{int(lengths[fname][i])} values, message 0 has {k}")
+    return TopicSeries(stamps, names, values["velocity"], values["effort"], values["position"])
 
 
-def _stack(path: Path, topic: str, fname: str, rows: list[tuple[float, ...]],
-           width: int) -> Float2D:
-    lengths = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
-    k = int(lengths[0])
-    if k not in (0, width):
-        raise BagError(f"{path}: topic {topic}: field '{fname}' of message 0 has {k} values, "
-                       f"expected 0 or {width} (one per name)")
-    bad = np.flatnonzero(lengths != k)
-    if bad.size:
-        i = int(bad[0])
-        raise BagError(f"{path}: topic {topic}: field '{fname}' of message {i} has "
-                       f"{int(lengths[i])} values, message 0 has {k}")
-    if k == 0:
-        return np.zeros((len(rows), 0))
-    return np.array(rows, dtype=np.float64)
+def read_topics(path: str | Path, topics: Sequence[str]) -> dict[str, TopicSeries]:
+    """Read every message of several ``sensor_msgs/msg/JointState`` topics in one pass.
+
+    Returns topic -> :class:`TopicSeries` (recorded order). Other topics are ignored. No value
+    checks beyond consistent names and array lengths. Raises :class:`BagError` naming the bag,
+    topic, message index and field (unreadable bag, missing topic, wrong type, no messages,
+    undecodable message, changing names or array lengths).
+    """
+    path = Path(path)
+    topics = list(dict.fromkeys(topics))
+    reader = _open_reader(path)
+    try:
+        raws = _collect(reader, path, topics)
+    finally:
+        reader.close()
+    return {t: _decode(path, t, raws[t]) for t in topics}
 
 
 def read_topic_series(path: str | Path, topic: str) -> TopicSeries:
     """Read every message of a ``sensor_msgs/msg/JointState`` topic, in recorded order.
 
-    Returns ``(stamps_ns, names, velocity, effort)`` (see :class:`TopicSeries`). No value
-    checks beyond consistent names and array lengths.
+    Returns ``(stamps_ns, names, velocity, effort, position)`` (see :class:`TopicSeries`). No
+    value checks beyond consistent names and array lengths.
     """
-    path = Path(path)
-    reader = _open_reader(path)
-    try:
-        return _read_series(reader, path, topic)
-    finally:
-        reader.close()
+    return read_topics(path, [topic])[topic]
 
 
 def _validate(path: Path, topic: str, series: TopicSeries, expected: tuple[str, ...],
@@ -442,10 +728,11 @@ def read_run(path: str | Path) -> Run:
     reader = _open_reader(path)
     try:
         topics = tuple(sorted({c.topic for c in reader.connections}))
-        js = _read_series(reader, path, JOINT_STATES_TOPIC)
-        cu = _read_series(reader, path, CURRENTS_TOPIC)
+        raws = _collect(reader, path, [JOINT_STATES_TOPIC, CURRENTS_TOPIC])
     finally:
         reader.close()
+    js = _decode(path, JOINT_STATES_TOPIC, raws[JOINT_STATES_TOPIC])
+    cu = _decode(path, CURRENTS_TOPIC, raws[CURRENTS_TOPIC])
     speeds = _validate(path, JOINT_STATES_TOPIC, js, SPEED_NAMES, "velocity")
     currents = _validate(path, CURRENTS_TOPIC, cu, CURRENT_NAMES, "effort")
     common, ia, ib = np.intersect1d(js.stamps_ns, cu.stamps_ns, assume_unique=True,
