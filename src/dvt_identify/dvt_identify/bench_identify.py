@@ -257,11 +257,11 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
             val = simulate_run(work / f"val-{tag}", secs, rate_hz, seed + 1)
             return est, val
 
-        def identify(est: dict[str, Any], val: dict[str, Any], augment: bool, out: str
-                     ) -> tuple[Any, float, float]:
+        def identify(est: dict[str, Any], val: dict[str, Any], augment: bool, out: str,
+                     plots: bool = True) -> tuple[Any, float, float]:
             return _timed(lambda: run([est["path"]], [val["path"]], work / out, desc_spec,
                                       augment=augment, starts=starts, fit_decimate=fit_decimate,
-                                      quiet=not verbose))
+                                      quiet=not verbose, plots=plots))
 
         est, val = pair(seconds)
         n = int(est["samples"])
@@ -272,6 +272,8 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
         log("timing: baseline (cli.run, augment=False)")
         base, base_s, base_cpu = identify(est, val, False, "report-baseline")
         log(f"baseline: {base_s:.2f} s")
+        log("timing: baseline without plots (cli.run, augment=False, plots=False)")
+        _, base_np_s, _ = identify(est, val, False, "report-baseline-no-plots", plots=False)
         log("timing: report writing alone")
         _, report_s, _ = _timed(lambda: write_report(base, work / "report-again"))
         cfg = base.config
@@ -282,6 +284,7 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
             "loop_seconds": None,
             "baseline_end_to_end_seconds": base_s,
             "loop_end_to_end_seconds": None,
+            "baseline_end_to_end_no_plots_seconds": base_np_s,
             "targets": {"baseline_seconds": TARGET_BASELINE_SECONDS,
                         "loop_seconds": TARGET_LOOP_SECONDS},
             "definitions": {
@@ -291,7 +294,9 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
                                     "estimation and validation data",
                 "loop_seconds": "the same with the augment loop (scoring, refits, decisions)",
                 "*_end_to_end_seconds": "dvt_identify.cli.run: read both bags, identify, write "
-                                        "report.json, report.md and the plots"},
+                                        "report.json, report.md and the plots",
+                "baseline_end_to_end_no_plots_seconds": "the same without the PNG plots "
+                                                        "(dvt-identify --no-plots)"},
             "settings": {"description": desc.name, "fit_decimate": cfg.fit_decimate,
                          "fit_samples": math.ceil(n / max(cfg.fit_decimate, 1)),
                          "starts": cfg.starts, "refit_starts": cfg.refit_starts,
@@ -638,8 +643,9 @@ def pretty(res: dict[str, Any]) -> str:
                  f"{TARGET_BASELINE_SECONDS:g})   loop_seconds "
                  f"{_num(res['loop_seconds'], '.2f')} (target <= {TARGET_LOOP_SECONDS:g})")
     lines.append(f"end to end (bags in, report out): baseline "
-                 f"{_num(res['baseline_end_to_end_seconds'], '.2f')} s, loop "
-                 f"{_num(res['loop_end_to_end_seconds'], '.2f')} s")
+                 f"{_num(res['baseline_end_to_end_seconds'], '.2f')} s "
+                 f"({_num(res['baseline_end_to_end_no_plots_seconds'], '.2f')} s without plots), "
+                 f"loop {_num(res['loop_end_to_end_seconds'], '.2f')} s")
     for k, v in res["breakdown"].items():
         if not isinstance(v, list):
             lines.append(f"  {k:28s} {_num(v)}")

@@ -86,8 +86,10 @@ def drop_unexcited_model_effects(desc: Description, est: Sequence[Segment]
 
 def run(est_bags: Sequence[str], val_bags: Sequence[str], out_dir: str | Path,
         description: str | None = None, augment: bool = True, starts: int | None = None,
-        fit_decimate: int | None = None, quiet: bool = False) -> IdentificationResult:
-    """Whole pipeline; returns the result after writing the report.
+        fit_decimate: int | None = None, quiet: bool = False, plots: bool = True
+        ) -> IdentificationResult:
+    """Whole pipeline; returns the result after writing the report (with its PNG plots unless
+    ``plots`` is false).
 
     Raises:
         DvtIdentifyError: bad input (description, bags, data).
@@ -127,7 +129,7 @@ def run(est_bags: Sequence[str], val_bags: Sequence[str], out_dir: str | Path,
         over["fit_decimate"] = max(1, fit_decimate)
     cfg = replace(cfg, **over)  # type: ignore[arg-type]
     result = identify(est, val, desc, cfg, say)
-    paths = write_report(result, out_dir)
+    paths = write_report(result, out_dir, plots_enabled=plots)
     say(f"report written: {paths['json']} and {paths['md']} ({time.monotonic() - t0:.1f} s)")
     return result
 
@@ -148,12 +150,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--starts", type=int, default=None, help="starts of the baseline fit")
     ap.add_argument("--fit-decimate", type=int, default=None,
                     help="decimate estimation data for fitting (figures stay at full rate)")
+    ap.add_argument("--no-plots", action="store_true",
+                    help="write report.json and report.md only (no PNG plots; faster)")
     ap.add_argument("--quiet", action="store_true", help="no progress on stderr")
     args = ap.parse_args(argv)
     try:
         result = run(args.bags, args.validate, args.out, args.description,
                      augment=not args.no_augment, starts=args.starts,
-                     fit_decimate=args.fit_decimate, quiet=args.quiet)
+                     fit_decimate=args.fit_decimate, quiet=args.quiet,
+                     plots=not args.no_plots)
     except DvtIdentifyError as exc:
         print(f"dvt-identify: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2

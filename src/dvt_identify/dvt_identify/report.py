@@ -669,12 +669,15 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(result: IdentificationResult, out_dir: str | Path) -> dict[str, Path]:
+def write_report(result: IdentificationResult, out_dir: str | Path,
+                 plots_enabled: bool = True) -> dict[str, Path]:
     """Write ``report.json``, ``report.md`` and the PNG plots into ``out_dir`` (created).
 
     Args:
         result: the identification result.
         out_dir: output directory.
+        plots_enabled: draw the PNG plots (``False``: ``report.json`` and ``report.md`` only,
+            for batch refits; the figures in them are the same).
 
     Returns:
         Paths by name (``json``, ``md``, ``plots:<file>``).
@@ -689,14 +692,15 @@ def write_report(result: IdentificationResult, out_dir: str | Path) -> dict[str,
     plots: list[Path] = []
     save = _PngWriter(background=True)
     try:
-        if result.val_segments:
-            plots += plot_fits(result, out, save)
-        plots += plot_residuals(result, out, save)
-        plots += plot_spectrum(result, out, save)
-        cp = plot_candidates(result, out, save)
-        if cp is not None:
-            plots.append(cp)
-        plots.append(plot_linear(result, out, save))
+        if plots_enabled:
+            if result.val_segments:
+                plots += plot_fits(result, out, save)
+            plots += plot_residuals(result, out, save)
+            plots += plot_spectrum(result, out, save)
+            cp = plot_candidates(result, out, save)
+            if cp is not None:
+                plots.append(cp)
+            plots.append(plot_linear(result, out, save))
     finally:
         save.wait()
     for p in plots:

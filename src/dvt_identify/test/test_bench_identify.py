@@ -69,6 +69,7 @@ def test_timing_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     # end to end adds reading the bags and writing the report to the identification
     assert res["baseline_end_to_end_seconds"] > res["baseline_seconds"]
     assert res["loop_end_to_end_seconds"] > res["loop_seconds"]
+    assert res["baseline_end_to_end_no_plots_seconds"] > 0  # a separate run: no order
     assert res["breakdown"]["jit_load_seconds"] >= 0
     assert res["settings"]["fit_decimate"] == 2 and res["settings"]["starts"] == 1
     assert res["settings"]["max_tries_per_round"] == 1

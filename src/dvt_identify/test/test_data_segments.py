@@ -165,7 +165,8 @@ def test_cli_load_segments_keeps_every_segment(tmp_path: Path) -> None:
 def test_cli_runs_on_a_split_bag_and_reports_the_dropped_piece(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """dvt-identify end to end on a lossy estimation bag: two long pieces fitted, a short one
-    dropped with a one-line warning on stderr (shown with --quiet too), the report written."""
+    dropped with a one-line warning on stderr (shown with --quiet too), the report written
+    (``--no-plots``: report.json and report.md, no PNG)."""
     from dvt_identify.cli import main
 
     n = 3000
@@ -187,10 +188,12 @@ def test_cli_runs_on_a_split_bag_and_reports_the_dropped_piece(
         "checks": {"min_samples": 500},
     }))
     rc = main([str(bag), "--validate", str(val), "--out", str(tmp_path / "out"),
-               "--description", str(desc_file), "--no-augment", "--quiet"])
+               "--description", str(desc_file), "--no-augment", "--quiet", "--no-plots"])
     assert rc == 0
     err = capsys.readouterr().err
     warn = [line for line in err.splitlines() if line.startswith("[dvt-identify] warning:")]
     assert len(warn) == 1 and "20 samples" in warn[0] and str(bag) in warn[0]
     report = (tmp_path / "out" / "report.json").read_text()
     assert f"{bag}#1" in report and f"{bag}#2" in report
+    assert (tmp_path / "out" / "report.md").is_file()
+    assert not list((tmp_path / "out").glob("*.png"))  # --no-plots
