@@ -28,7 +28,7 @@ friction ``-dFv |s|``, so ``Fv+ = Fv + dFv``, ``Fv- = Fv - dFv``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from scipy.integrate import cumulative_trapezoid
 
 from dvt_identify.errors import DescriptionError
-from dvt_identify.simloop import ABS_VISCOUS, STRIBECK, WINDAGE, smooth_value, spline_load
+from dvt_identify.simloop import ABS_VISCOUS, STRIBECK, WINDAGE, spline_load
 
 Array = NDArray[np.float64]
 
@@ -122,17 +122,6 @@ class Effect:
         simulation compiles these), or ``None``."""
         return None
 
-    def smooth_force(self, p: Array) -> Callable[[float], float] | None:
-        """``tau = g(s)`` for member speed ``s``, or ``None`` (default: the coded law as a
-        Python function; override only for a law that has no code)."""
-        law = self.smooth_law(p)
-        if law is None:
-            return None
-        kind, p0, p1 = law
-
-        def g(s: float) -> float:
-            return float(smooth_value(kind, p0, p1, s))
-        return g
 
     def dry_capacity(self, p: Array, seg: SegmentView) -> Array | float | None:
         """Dry-friction capacity (>= 0): a number or shape (N,); ``None`` for no dry part."""

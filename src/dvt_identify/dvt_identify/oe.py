@@ -352,49 +352,27 @@ def simulate_linear(Ad: Array, d: Array, x0: Array) -> Array:
     return np.asarray(x, dtype=float)
 
 
-@dataclass
-class _Dry:
-    c: list[float]
-    cap: list[float] | float
-    brk: float
-    gdf: list[float]
-    fcv: list[float]
-    cfc: float
-
-
 SmoothLaw = tuple[int, float, float]
 """A coded smooth member force ``(kind, p0, p1)`` (:mod:`dvt_identify.simloop`)."""
-SmoothForce = SmoothLaw | Callable[[float], float]
-
-
-def _as_callable(law: SmoothForce) -> Callable[[float], float]:
-    if callable(law):
-        return law
-    kind, p0, p1 = law
-
-    def g(s: float) -> float:
-        return float(smooth_value(kind, p0, p1, s))
-    return g
 
 
 def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, x0: Array,
-                  smooth: Sequence[tuple[Array, SmoothForce]],
+                  smooth: Sequence[tuple[Array, SmoothLaw]],
                   dry: Sequence[tuple[Array, Array | float, float]], reference: bool = False
                   ) -> Array:
-    """Step loop with state-dependent member forces held over each step.
+    """Step loop with state-dependent member forces held over each step (compiled kernels of
+    :mod:`dvt_identify.simloop`).
 
     Args:
         A, Ad, Gd, F: continuous ``A``, its ZOH ``Ad``, ``Gd`` and the force map ``F``.
         w: generalised input ``B u_eff + F f_exo`` per sample [state unit/s], shape (N, nx).
         d: ``w @ Gd.T``, shape (N, nx).
         x0: initial state, shape (nx,).
-        smooth: (member c, law) pairs: force ``g(c.x)``, the law coded ``(kind, p0, p1)``
-            (:mod:`dvt_identify.simloop`) or any Python callable.
+        smooth: (member c, law) pairs: force ``g(c.x)`` with the law coded ``(kind, p0, p1)``.
         dry: (member c, capacity (number or shape (N,)), breakaway) triples; capacities of
             the same member add up.
-        reference: run the plain-Python loop even when every smooth law is coded (the compiled
-            kernels of :mod:`dvt_identify.simloop` implement the same rule; a callable law
-            always takes the Python loop).
+        reference: run the kernels' Python source in the interpreter instead of the compiled
+            code (slow; for checking the compilation).
 
     Returns:
         States, shape (N, nx).
@@ -410,102 +388,21 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
             grp[1] += brk
         else:
             groups[key] = [capv, brk]
-    coded = [(c, law) for c, law in smooth if not callable(law)]
-    if not reference and len(coded) == len(smooth):
-        return _compiled_loop(A, Ad, Gd, F, w, d, x0, coded, groups)
-    drys: list[_Dry] = []
-    for key, (capv, brk) in groups.items():
-        cv = np.array(key)
-        fcv = F @ cv
-        drys.append(_Dry(c=list(key), cap=(capv.tolist() if isinstance(capv, np.ndarray)
-                                           else float(capv)), brk=float(brk),
-                         gdf=(Gd @ fcv).tolist(), fcv=fcv.tolist(), cfc=float(cv @ fcv)))
-    sm = [(np.asarray(c, float).tolist(), _as_callable(law), (Gd @ F @ c).tolist(),
-           (F @ c).tolist()) for c, law in smooth]
-    if nx == 1:
-        return _loop_scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].tolist(),
-                            d[:, 0].tolist(), float(x0[0]), sm, drys)
-    Al, Adl = A.tolist(), Ad.tolist()
-    wl, dl = w.tolist(), d.tolist()
-    rng = range(nx)
-    x = [float(v) for v in x0]
-    out = [x]
-    rest = [False] * len(drys)
-    for k in range(n - 1):
-        dk = dl[k]
-        xn = [sum(Adl[i][j] * x[j] for j in rng) + dk[i] for i in rng]
-        extra = [0.0] * nx
-        for c, g, gdf, fcv in sm:
-            tau = g(sum(c[j] * x[j] for j in rng))
-            if tau:
-                for i in rng:
-                    xn[i] += gdf[i] * tau
-                    extra[i] += fcv[i] * tau
-        for gi, dr in enumerate(drys):
-            cap = dr.cap[k] if isinstance(dr.cap, list) else dr.cap
-            s = sum(dr.c[j] * x[j] for j in rng)
-            if not rest[gi] and s != 0.0:
-                tau = -cap if s > 0.0 else cap
-                for i in rng:
-                    xn[i] += dr.gdf[i] * tau
-                sn = sum(dr.c[j] * xn[j] for j in rng)
-                if (sn > 0.0) != (s > 0.0) or sn == 0.0:
-                    # crossed zero: stick if the holding force is within the capacity, else
-                    # continue with the friction reversed (see _loop_scalar)
-                    xp = [xn[i] - dr.fcv[i] * sn / dr.cfc for i in rng]
-                    wk = wl[k]
-                    ca = sum(dr.c[i] * (sum(Al[i][j] * xp[j] for j in rng) + wk[i] + extra[i])
-                             for i in rng)
-                    if abs(ca / dr.cfc) <= cap + dr.brk:
-                        xn = xp
-                        rest[gi] = True
-                    else:
-                        for i in rng:
-                            xn[i] -= 2.0 * dr.gdf[i] * tau
-                        sn2 = sum(dr.c[j] * xn[j] for j in rng)
-                        if (sn2 > 0.0) == (s > 0.0) or sn2 == 0.0:
-                            xn = [xn[i] - dr.fcv[i] * sn2 / dr.cfc for i in rng]
-                            rest[gi] = True
-                continue
-            wk = wl[k]
-            ca = sum(dr.c[i] * (sum(Al[i][j] * x[j] for j in rng) + wk[i] + extra[i])
-                     for i in rng)
-            req = -ca / dr.cfc
-            if abs(req) <= cap + dr.brk:
-                for i in rng:
-                    xn[i] += dr.gdf[i] * req
-                sn = sum(dr.c[j] * xn[j] for j in rng)
-                for i in rng:
-                    xn[i] -= dr.fcv[i] * sn / dr.cfc
-                rest[gi] = True
-            else:
-                tau = -cap if ca > 0.0 else cap
-                for i in rng:
-                    xn[i] += dr.gdf[i] * tau
-                rest[gi] = False
-        x = xn
-        out.append(x)
-    return np.asarray(out, dtype=float)
-
-
-def _compiled_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, x0: Array,
-                   smooth: Sequence[tuple[Array, SmoothLaw]],
-                   groups: dict[tuple[float, ...], list[Any]]) -> Array:
-    """Arrays for the :mod:`dvt_identify.simloop` kernels, and the call."""
-    n, nx = d.shape
+    members = loop_members.py_func if reference else loop_members
+    scalar = loop_scalar.py_func if reference else loop_scalar
     ns = len(smooth)
     sc = np.array([np.asarray(c, np.float64) for c, _ in smooth],
                   dtype=np.float64).reshape(ns, nx)
     skind = np.array([int(law[0]) for _, law in smooth], dtype=np.int64)
     spar = np.array([[float(law[1]), float(law[2])] for _, law in smooth],
                     dtype=np.float64).reshape(ns, 2)
-    # the same products, in the same association, as the Python loop (bitwise-equal results)
     GdF = Gd @ F
     sfc = np.array([F @ c for c in sc], dtype=np.float64).reshape(ns, nx)
     sgd = np.array([GdF @ c for c in sc], dtype=np.float64).reshape(ns, nx)
-    w = np.ascontiguousarray(w, dtype=float)
-    d = np.ascontiguousarray(d, dtype=float)
+    w = np.ascontiguousarray(w, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
     if nx == 1:
+        # one state: every dry member lumped in generalised coordinates
         cap = np.zeros(n)
         brk = 0.0
         gdf_unit = fmap = 1.0
@@ -518,10 +415,9 @@ def _compiled_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array,
             fmap = fc / c0
         extra0 = sum(smooth_value(int(k), float(p[0]), float(p[1]), 0.0) * float(c[0])
                      for k, p, c in zip(skind, spar, sc, strict=True))
-        x = loop_scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].copy(), d[:, 0].copy(),
-                        float(x0[0]), sc[:, 0].copy(), skind, spar, sgd[:, 0].copy(),
-                        bool(groups), np.ascontiguousarray(cap), float(brk), gdf_unit, fmap,
-                        float(extra0))
+        x = scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].copy(), d[:, 0].copy(),
+                   float(x0[0]), sc[:, 0].copy(), skind, spar, sgd[:, 0].copy(), bool(groups),
+                   np.ascontiguousarray(cap), float(brk), gdf_unit, fmap, float(extra0))
         return np.asarray(x, dtype=float)[:, None]
     nd = len(groups)
     dc = np.array([np.array(key) for key in groups], dtype=np.float64).reshape(nd, nx)
@@ -533,81 +429,10 @@ def _compiled_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array,
     dfcv = np.array([F @ c for c in dc], dtype=np.float64).reshape(nd, nx)
     dgdf = np.array([Gd @ f for f in dfcv], dtype=np.float64).reshape(nd, nx)
     dcfc = np.array([float(c @ f) for c, f in zip(dc, dfcv, strict=True)], dtype=np.float64)
-    return np.asarray(loop_members(np.ascontiguousarray(A, np.float64),
-                                   np.ascontiguousarray(Ad, np.float64), w, d,
-                                   np.array(x0, np.float64), sc, skind, spar, sgd, sfc, dc,
-                                   dcap, dbrk, dgdf, dfcv, dcfc), dtype=np.float64)
-
-
-def _loop_scalar(a: float, ad: float, w: list[float], d: list[float], x0: float,
-                 sm: list[tuple[list[float], Callable[[float], float], list[float], list[float]]],
-                 drys: list[_Dry]) -> Array:
-    """One-state version of :func:`simulate_loop` in generalised coordinates."""
-    n = len(d)
-    smooth = [(c[0], g, gdf[0]) for c, g, gdf, _ in sm]
-    gdf_unit = 0.0
-    fmap = 1.0
-    cap_const = 0.0
-    cap_list: list[float] | None = None
-    brk = 0.0
-    if drys:
-        # generalised capacity = sum |c| C; unit generalised force response gdf/c
-        for dr in drys:
-            c0 = dr.c[0]
-            if isinstance(dr.cap, list):
-                cl = [abs(c0) * v for v in dr.cap]
-                cap_list = cl if cap_list is None else [p + q for p, q in zip(cap_list, cl,
-                                                                               strict=True)]
-            else:
-                cap_const += abs(c0) * dr.cap
-            brk += abs(c0) * dr.brk
-            gdf_unit = dr.gdf[0] / c0
-            fmap = dr.fcv[0] / c0
-    x = x0
-    out = [0.0] * n
-    out[0] = x
-    has_dry = bool(drys)
-    extra0 = sum(g(0.0) * c0 for c0, g, _ in smooth)  # smooth forces at rest
-    rest = False
-    for k in range(n - 1):
-        xn = ad * x + d[k]
-        extra = 0.0
-        for c0, g, gdf in smooth:
-            tau = g(c0 * x)
-            if tau:
-                xn += gdf * tau
-                extra += tau * c0
-        if has_dry:
-            cap = cap_const if cap_list is None else cap_const + cap_list[k]
-            if not rest and x != 0.0:
-                xn -= gdf_unit * cap if x > 0.0 else -gdf_unit * cap
-                if (xn > 0.0) != (x > 0.0) or xn == 0.0:
-                    # crossed zero within the step: stick if the force needed to hold the
-                    # member at rest is within the capacity, else go through with the friction
-                    # reversed (stick after all if that does not get it through)
-                    acc0 = w[k] + fmap * extra0
-                    if abs(acc0 / fmap) <= cap + brk:
-                        xn = 0.0
-                        rest = True
-                    else:
-                        xn += 2.0 * gdf_unit * cap if x > 0.0 else -2.0 * gdf_unit * cap
-                        if (xn > 0.0) == (x > 0.0) or xn == 0.0:
-                            xn = 0.0
-                            rest = True
-            else:
-                # generalised force that keeps x' = 0: -(a x + w)/fmap - extra
-                acc = a * x + w[k] + fmap * extra
-                req = -acc / fmap
-                if abs(req) <= cap + brk:
-                    xn = 0.0
-                    rest = True
-                else:
-                    xn = ad * x + d[k] + (gdf_unit * (extra - cap) if acc > 0.0
-                                          else gdf_unit * (extra + cap))
-                    rest = False
-        out[k + 1] = xn
-        x = xn
-    return np.asarray(out, dtype=float)[:, None]
+    return np.asarray(members(np.ascontiguousarray(A, np.float64),
+                              np.ascontiguousarray(Ad, np.float64), w, d,
+                              np.array(x0, np.float64), sc, skind, spar, sgd, sfc, dc, dcap,
+                              dbrk, dgdf, dfcv, dcfc), dtype=np.float64)
 
 
 class OEModel:
@@ -672,7 +497,7 @@ class OEModel:
         # effects see the transformed inputs (a brake's capacity follows its engagement lag)
         view = SegmentView(seg.dt, u, seg.y)
         w = u @ B.T
-        smooth: list[tuple[Array, SmoothForce]] = []
+        smooth: list[tuple[Array, SmoothLaw]] = []
         dry: list[tuple[Array, Array | float, float]] = []
         brk: dict[tuple[float, ...], float] = {}
         for e, p in zip(self.effects, ps, strict=True):
@@ -680,9 +505,7 @@ class OEModel:
             if f is not None and e.member is not None:
                 w = w + np.outer(f, F @ e.member)
             if e.state_dependent and e.member is not None:
-                law: SmoothForce | None = e.smooth_law(p)
-                if law is None:
-                    law = e.smooth_force(p)
+                law = e.smooth_law(p)
                 if law is not None:
                     smooth.append((e.member, law))
                 b = e.breakaway(p)

@@ -4,18 +4,18 @@ Also the compliant-spline load of the ``backlash`` candidate (:func:`spline_load
 
 The simulation of a model with state-dependent member forces (dry friction with a stick rule,
 Stribeck, windage, direction-dependent viscous friction) cannot be vectorised: each step depends
-on the previous one. These kernels run that loop in machine code; :func:`dvt_identify.oe.
-simulate_loop` prepares their arrays and keeps the plain-Python loop as the reference (and as
-the path for smooth forces given as arbitrary Python callables).
+on the previous one. These kernels run that loop in machine code;
+:func:`dvt_identify.oe.simulate_loop` prepares their arrays (and can run the same source in the
+interpreter, ``reference=True``, to check the compilation).
 
 Smooth laws are coded as ``(kind, p0, p1)`` (:data:`STRIBECK`, :data:`WINDAGE`,
 :data:`ABS_VISCOUS`); :func:`smooth_value` evaluates one, compiled or from Python.
 
-The rule implemented (identical to :func:`dvt_identify.oe.simulate_loop`): the linear part is
-advanced by its exact ZOH map, every member force is evaluated at the start of a step and held
-over it; a sliding member whose speed would cross zero within a step sticks if the force needed to
-hold it is within its dry capacity (plus break-away), else the friction is reversed; a member at
-rest stays at rest while the holding force is within the capacity.
+The rule implemented: the linear part is advanced by its exact ZOH map, every member force is
+evaluated at the start of a step and held over it; a sliding member whose speed would cross zero
+within a step sticks if the force needed to hold it is within its dry capacity (plus
+break-away), else the friction is reversed; a member at rest stays at rest while the holding
+force is within the capacity.
 
 Compilation happens on the first call of a process and is cached on disk next to this file
 (``__pycache__``), so later processes load machine code in well under a second.
