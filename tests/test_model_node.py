@@ -115,6 +115,13 @@ def test_runtime_parameter_change_and_refusal(procs, rclpy_context, tmp_path):
     assert not bad_shape.successful and "A" in bad_shape.reason
     unknown = listener.set_param("params", "no-such-set")
     assert not unknown.successful and "unknown parameter set" in unknown.reason
+    bad_bands = listener.set_param("brake_gain", [8.0, 8.0])
+    assert not bad_bands.successful
+    assert "brake_gain: expected 3 values (bands 1, 2, 3) [N m/A], got 2" in bad_bands.reason
+    bad_tau = listener.set_param("brake_time_constant", [0.02, 0.0, 0.02])
+    assert not bad_tau.successful and "expected finite values > 0 [s]" in bad_tau.reason
+    good = listener.set_param("brake_time_constant", [0.02, 0.02, 0.02])
+    assert good.successful, good.reason
     assert node.poll() is None
     # the accepted change took effect: 'thesis' inertias differ from the plant -> larger residual
     replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")

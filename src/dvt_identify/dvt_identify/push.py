@@ -4,8 +4,10 @@ The DVT structure (``descriptions/dvt.yaml``: mechanical, symmetric M and D entr
 ``M11, M12, M22, D11, D12, D22``) maps to the model node's ``M`` and ``D``; accepted force
 effects map to its ``effects`` JSON (:mod:`dvt_model.terms`): Coulomb (with offset), Stribeck,
 windage; measurement delay and sensor gain map to output transforms. Effects the model node
-cannot represent (backlash on an input, an extra brake-engagement stage) are listed in
-``skipped`` and not pushed.
+cannot represent (backlash, an extra brake-engagement stage or dead time) are listed in
+``skipped`` and not pushed. The baseline's band brakes (``brake_lockup`` gains [N m/A] and
+``brake_engagement`` time constants [s] on the inputs ``brake1..3``) map to the node's
+``brake_gain`` and ``brake_time_constant`` when all three bands were identified.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from dvt_identify.effects import (
+    BrakeEngagement,
+    BrakeLockup,
     CoulombFriction,
     MeasurementDelay,
     SensorGain,
@@ -58,8 +62,15 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0) -> Push:
     fit = stage.fit
     params = fit.model.effect_params(fit.theta_)
     outputs = list(fit.model.structure.state_names)
+    inputs = list(fit.model.structure.input_names)
+    bands: dict[str, dict[int, float]] = {"brake_gain": {}, "brake_time_constant": {}}
     for k, (eff, p) in enumerate(zip(fit.model.effects, params, strict=True)):
         if k < n_model_effects:
+            band = _band(inputs, eff.index)
+            if band is not None and isinstance(eff, BrakeLockup):
+                bands["brake_gain"][band] = float(p[0])
+            elif band is not None and isinstance(eff, BrakeEngagement):
+                bands["brake_time_constant"][band] = float(p[0])
             continue
         member = None if eff.member is None else [float(v) for v in eff.member]
         if isinstance(eff, CoulombFriction):
@@ -81,6 +92,23 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0) -> Push:
             skipped.append(eff.label())
     out: dict[str, Any] = {"M": [float(v) for v in M], "D": [float(v) for v in D],
                            "effects": json.dumps(terms)}
+    for key, per_band in bands.items():
+        vals = [per_band.get(b) for b in (1, 2, 3)]
+        if all(v is not None and np.isfinite(v) and v > 0.0 for v in vals):
+            out[key] = [float(v) for v in vals if v is not None]
+        elif per_band:
+            missing = [b for b, v in zip((1, 2, 3), vals, strict=True) if not (v and v > 0.0)]
+            skipped.append(f"{key} (band(s) {missing} not identified or zero)")
     if not np.all(np.isfinite(out["M"] + out["D"])):
         raise DvtIdentifyError(f"cannot push non-finite M/D: {out['M']} {out['D']}")
     return Push(parameters=out, skipped=skipped)
+
+
+def _band(inputs: list[str], index: int) -> int | None:
+    """Band number 1..3 of input ``index`` when it is named ``brake1..3``, else ``None``."""
+    if not 0 <= index < len(inputs):
+        return None
+    name = inputs[index]
+    if name in ("brake1", "brake2", "brake3"):
+        return int(name[-1])
+    return None

@@ -29,6 +29,13 @@ def static_torque(brake: BrakeParams, current: ArrayLike) -> NDArray[np.float64]
     return np.asarray(brake.gain * np.clip(i, 0.0, None))
 
 
+def band_torques(brake: BrakeParams, current: ArrayLike) -> NDArray[np.float64]:
+    """Static torque of each band [N m] for the three brake-motor currents [A], shape (3,):
+    each band's own gain (:attr:`BrakeParams.gains`); negative currents release."""
+    i = np.asarray(current, dtype=float).reshape(3)
+    return np.asarray(brake.gains * np.clip(i, 0.0, None))
+
+
 def engagement_profile(t: ArrayLike, time_constant: float) -> NDArray[np.float64]:
     """Normalised first-order engagement ``1 - exp(-t/tau)`` (0 for t < 0), shape of ``t``."""
     tt = np.asarray(t, dtype=float)
@@ -36,8 +43,10 @@ def engagement_profile(t: ArrayLike, time_constant: float) -> NDArray[np.float64
 
 
 def capacity_step(capacity: NDArray[np.float64], target: NDArray[np.float64], dt: float,
-                  time_constant: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Advance the first-order band capacity by ``dt`` exactly.
+                  time_constant: float | NDArray[np.float64]
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Advance the first-order band capacity by ``dt`` exactly (``time_constant`` [s]: one for
+    all bands or one per band, shape (3,)).
 
     Args:
         capacity: capacity at the step start [N m], shape (3,).

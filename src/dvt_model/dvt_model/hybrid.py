@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm, null_space
 
-from dvt_model.brake import capacity_step, static_torque
+from dvt_model.brake import band_torques, capacity_step
 from dvt_model.dynamics import RigidModel, rigid_model
 from dvt_model.errors import SimulationError
 from dvt_model.params import BrakeParams, TransmissionParams
@@ -234,13 +234,13 @@ class HybridModel:
         if not dt > 0.0:
             raise SimulationError(f"dt: expected > 0 s, got {dt!r}")
         ib = np.asarray(i_brake, dtype=float).reshape(3)
-        target = static_torque(self.brake, ib)
+        target = band_torques(self.brake, ib)
         omega = state.omega
         locked = state.locked
         rings = omega @ self._ring
         if self.engagement is None:
             cap_end, cap_mean = capacity_step(state.capacity, target, dt,
-                                              self.brake.time_constant)
+                                              self.brake.time_constants)
         else:
             cap_end, cap_mean = self.engagement(state.capacity, target, dt, rings)
         hold_cap = self.brake.static_factor * cap_mean

@@ -46,8 +46,21 @@ from dvt_model.params import load_parameters
 from dvt_model.predictor import Predictor
 from dvt_model.terms import parse_terms
 
-_PARAMS = ("params", "M", "D", "motor_constant", "A", "B", "effects", "mode",
-           "reanchor_period", "gap_reset")
+_PARAMS = ("params", "M", "D", "motor_constant", "brake_gain", "brake_time_constant", "A", "B",
+           "effects", "mode", "reanchor_period", "gap_reset")
+
+
+def _band_values(values: dict[str, Any], key: str, unit: str) -> tuple[float, float, float] | None:
+    """Three positive finite per-band values of parameter ``key``, or ``None`` when empty."""
+    raw = list(values.get(key) or [])
+    if not raw:
+        return None
+    arr = np.asarray(raw, dtype=float).reshape(-1)
+    if arr.shape != (3,):
+        raise ModelError(f"{key}: expected 3 values (bands 1, 2, 3) [{unit}], got {len(raw)}")
+    if not (np.all(np.isfinite(arr)) and np.all(arr > 0.0)):
+        raise ModelError(f"{key}: expected finite values > 0 [{unit}], got {arr.tolist()}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
 
 
 def build_predictor(values: dict[str, Any]) -> tuple[Predictor, str]:
@@ -69,6 +82,13 @@ def build_predictor(values: dict[str, Any]) -> tuple[Predictor, str]:
         changes["motor_constant"] = km
     if changes:
         rigid = dataclasses.replace(rigid, **changes)
+    brake = params.brake
+    band_gain = _band_values(values, "brake_gain", "N m/A")
+    band_tau = _band_values(values, "brake_time_constant", "s")
+    if band_gain is not None or band_tau is not None:
+        brake = dataclasses.replace(brake, band_gain=band_gain, band_time_constant=band_tau)
+        changes.update({k: True for k, v in (("brake_gain", band_gain),
+                                             ("brake_time_constant", band_tau)) if v is not None})
     a_raw, b_raw = list(values.get("A") or []), list(values.get("B") or [])
     mode = str(values.get("mode", "simulate"))
     model: HybridModel | LinearModel
@@ -85,12 +105,12 @@ def build_predictor(values: dict[str, Any]) -> tuple[Predictor, str]:
     if (a_raw or b_raw) and terms.forces:
         raise ModelError("effects: force terms need the physical model (clear A and B)")
     if not (a_raw or b_raw):
-        model = HybridModel(rigid, params.brake,
+        model = HybridModel(rigid, brake,
                             extra_force=terms.extra_force if terms.forces else None)
         desc = f"hybrid physics '{params.name}'" + (f" with {sorted(changes)}" if changes else "")
     if not terms.empty:
         desc += f" + {len(terms.forces)} force term(s), delay {terms.delay:g} s"
-    predictor = Predictor(model, params.brake, mode=mode,  # type: ignore[arg-type]
+    predictor = Predictor(model, brake, mode=mode,  # type: ignore[arg-type]
                           reanchor_period=float(values.get("reanchor_period", 1.0)),
                           gap_reset=float(values.get("gap_reset", 0.5)),
                           output_delay=terms.delay, output_gain=terms.gains)
@@ -113,6 +133,15 @@ class ModelNode(Node):
         self.declare_parameter("motor_constant", 0.0, ParameterDescriptor(
             description="drive-motor constant K_M [N m/A]; 0 = the parameter set's value",
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=10.0)]))
+        self.declare_parameter("brake_gain", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY,
+            description="static torque per brake-motor ampere of bands 1-3 [N m/A], 3 values; "
+                        "empty = the parameter set's band law"))
+        self.declare_parameter("brake_time_constant", Parameter.Type.DOUBLE_ARRAY,
+                               ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY,
+            description="engagement time constant of bands 1-3 [s], 3 values; empty = the "
+                        "parameter set's"))
         self.declare_parameter("A", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE_ARRAY,
             description="identified state matrix [1/s], 4 values row-major (with B)"))

@@ -18,7 +18,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from dvt_model.errors import ParameterError
 
@@ -43,7 +45,9 @@ class BrakeParams:
     ``motor_constant * i`` [N m] becomes a band pull ``actuation_gain * motor_constant * i`` [N],
     and the band holds ``pull * (exp(mu * wrap) - 1) * drum_radius`` [N m].
     ``time_constant`` [s] is the first-order engagement time, ``static_factor`` the ratio of the
-    holding (stick) capacity to the sliding torque.
+    holding (stick) capacity to the sliding torque. ``band_gain`` [N m/A] and
+    ``band_time_constant`` [s] (3 values each, bands 1..3) override the shared law per band,
+    e.g. with identified values; ``None`` = the shared law.
     """
 
     motor_constant: float
@@ -53,6 +57,22 @@ class BrakeParams:
     drum_radius: float
     time_constant: float
     static_factor: float = 1.0
+    band_gain: tuple[float, float, float] | None = None
+    band_time_constant: tuple[float, float, float] | None = None
+
+    @property
+    def gains(self) -> NDArray[np.float64]:
+        """Static torque per brake-motor ampere of each band [N m/A], shape (3,)."""
+        if self.band_gain is not None:
+            return np.asarray(self.band_gain, dtype=float)
+        return np.full(3, self.gain)
+
+    @property
+    def time_constants(self) -> NDArray[np.float64]:
+        """Engagement time constant of each band [s], shape (3,)."""
+        if self.band_time_constant is not None:
+            return np.asarray(self.band_time_constant, dtype=float)
+        return np.full(3, self.time_constant)
 
     @property
     def gain(self) -> float:

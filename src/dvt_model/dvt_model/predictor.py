@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from dvt_model.brake import capacity_step, static_torque
+from dvt_model.brake import band_torques, capacity_step
 from dvt_model.errors import SimulationError
 from dvt_model.hybrid import HybridModel, HybridState
 from dvt_model.linear import LinearModel
@@ -99,7 +99,7 @@ class Predictor:
         if isinstance(self.model, HybridModel):
             prev = self._state
             rings = self.model.ring_speeds(omega)
-            target = static_torque(self.brake, i_brake)
+            target = band_torques(self.brake, i_brake)
             still = np.abs(rings) < 0.5
             cap = np.where(still, target, prev.capacity if prev is not None else 0.0)
             self._state = self.model.initial_state(omega, t=stamp, capacity=cap)
@@ -133,9 +133,9 @@ class Predictor:
                 assert self._state is not None
                 self._state = self.model.step(self._state, dt, im_prev, ib_prev)
             else:
-                target = static_torque(self.brake, ib_prev)
+                target = band_torques(self.brake, ib_prev)
                 cap_end, cap_mean = capacity_step(self._cap, target, dt,
-                                                  self.brake.time_constant)
+                                                  self.brake.time_constants)
                 u = np.concatenate([[im_prev], cap_mean])
                 self._omega = self.model.step(self._omega, dt, u)
                 self._cap = cap_end

@@ -121,3 +121,29 @@ def test_simulate_rejects_bad_input(model):
         model.simulate(t, bad, np.zeros((5, 3)))
     with pytest.raises(SimulationError, match="t: not strictly increasing at sample 2"):
         model.simulate(np.array([0.0, 1.0, 1.0, 2.0, 3.0]), np.zeros(5), np.zeros((5, 3)))
+
+
+def test_per_band_brake_gain_and_time_constant() -> None:
+    """Band overrides (e.g. identified values): each band's capacity follows its own static
+    torque per ampere and its own engagement time constant (exact first order)."""
+    from dataclasses import replace
+
+    from dvt_model.dynamics import rigid_model
+
+    params = load_parameters("physical")
+    g = params.brake.gain
+    brake = replace(params.brake, band_gain=(2.0 * g, g, 0.5 * g),
+                    band_time_constant=(0.01, 0.02, 0.05))
+    np.testing.assert_allclose(brake.gains, [2.0 * g, g, 0.5 * g])
+    model = HybridModel(rigid_model(params), brake)
+    state = model.initial_state((0.0, 0.0))
+    dt, i = 1e-3, 0.1
+    for _ in range(20):  # 20 ms at rest, all bands energised
+        state = model.step(state, dt, 0.0, (i, i, i))
+    target = np.array([2.0, 1.0, 0.5]) * g * i
+    expected = target * (1.0 - np.exp(-0.02 / np.array([0.01, 0.02, 0.05])))
+    np.testing.assert_allclose(state.capacity, expected, rtol=1e-9)
+    # without overrides the shared law applies to every band
+    plain = params.brake
+    np.testing.assert_allclose(plain.gains, [g, g, g])
+    np.testing.assert_allclose(plain.time_constants, [plain.time_constant] * 3)

@@ -1,0 +1,60 @@
+"""Mapping an identified DVT model onto the model node's parameters (pure, no ROS)."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+
+from dvt_identify.description import load_description
+from dvt_identify.effects import BrakeEngagement, BrakeLockup, make_effect
+from dvt_identify.oe import OEModel
+from dvt_identify.push import model_node_parameters
+
+
+def _stage(effects, values):  # type: ignore[no-untyped-def]
+    """A fitted stage as model_node_parameters sees it: the model and its parameter vector."""
+    desc = load_description("dvt")
+    model = OEModel(desc.structure, effects)
+    theta = model.initial()
+    for name, v in values.items():
+        theta[model.names.index(name)] = v
+    fit = SimpleNamespace(model=model, theta_=theta)
+    return SimpleNamespace(fit=fit, parameters=lambda: model.parameters(theta)), desc
+
+
+def test_band_brakes_and_effects_are_mapped() -> None:
+    desc = load_description("dvt")
+    bands = desc.make_model_effects()
+    names = [p.name for e in bands for p in e.params]
+    values = {}
+    for e in bands:
+        band = int(desc.input_names[e.index][-1])
+        if isinstance(e, BrakeLockup):
+            values[e.params[0].name] = 7.5 + band
+        elif isinstance(e, BrakeEngagement):
+            values[e.params[0].name] = 0.01 * band
+    coulomb = make_effect("coulomb_friction", "sun_shaft", desc.output_names, desc.input_names,
+                          "N m", "rad/s")
+    stage, _ = _stage([*bands, coulomb], {**values, coulomb.params[0].name: 0.07})
+    push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
+    p = push.parameters
+    assert len(names) == 6
+    np.testing.assert_allclose(p["brake_gain"], [8.5, 9.5, 10.5])
+    np.testing.assert_allclose(p["brake_time_constant"], [0.01, 0.02, 0.03])
+    terms = json.loads(p["effects"])
+    assert [t["kind"] for t in terms] == ["coulomb"] and terms[0]["Fc"] == 0.07
+    assert push.skipped == []
+
+
+def test_unidentified_band_is_not_pushed_and_said() -> None:
+    desc = load_description("dvt")
+    # band 2 and 3 dropped (never excited): only band 1's effects in the model
+    bands = [e for e in desc.make_model_effects() if desc.input_names[e.index] == "brake1"]
+    values = {e.params[0].name: (8.0 if isinstance(e, BrakeLockup) else 0.02) for e in bands}
+    stage, _ = _stage(bands, values)
+    push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
+    assert "brake_gain" not in push.parameters
+    assert "brake_time_constant" not in push.parameters
+    assert "brake_gain (band(s) [2, 3] not identified or zero)" in push.skipped
