@@ -7,12 +7,14 @@ windage; measurement delay and sensor gain map to output transforms. Effects the
 cannot represent (backlash, an extra brake-engagement stage or dead time) are listed in
 ``skipped`` and not pushed. The baseline's band brakes (``brake_lockup`` gains [N m/A] and
 ``brake_engagement`` time constants [s] on the inputs ``brake1..3``) map to the node's
-``brake_gain`` and ``brake_time_constant`` when all three bands were identified.
+``brake_gain`` and ``brake_time_constant`` when all three bands were identified and the data
+determined each value (relative standard deviation at most :data:`MAX_RELATIVE_STD`).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,6 +31,10 @@ from dvt_identify.effects import (
 )
 from dvt_identify.errors import DvtIdentifyError
 from dvt_identify.loop import Stage
+
+MAX_RELATIVE_STD = 0.5
+"""A band parameter whose standard deviation exceeds this fraction of its value (or is not
+finite, e.g. at a bound) is not pushed: the data did not determine it."""
 
 
 @dataclass(frozen=True)
@@ -63,14 +69,21 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0) -> Push:
     params = fit.model.effect_params(fit.theta_)
     outputs = list(fit.model.structure.state_names)
     inputs = list(fit.model.structure.input_names)
+    std = fit.parameter_std()
     bands: dict[str, dict[int, float]] = {"brake_gain": {}, "brake_time_constant": {}}
+    vague: dict[str, list[int]] = {"brake_gain": [], "brake_time_constant": []}
     for k, (eff, p) in enumerate(zip(fit.model.effects, params, strict=True)):
         if k < n_model_effects:
             band = _band(inputs, eff.index)
-            if band is not None and isinstance(eff, BrakeLockup):
-                bands["brake_gain"][band] = float(p[0])
-            elif band is not None and isinstance(eff, BrakeEngagement):
-                bands["brake_time_constant"][band] = float(p[0])
+            key = ("brake_gain" if isinstance(eff, BrakeLockup) else "brake_time_constant"
+                   if isinstance(eff, BrakeEngagement) else None)
+            if band is not None and key is not None:
+                value = float(p[0])
+                sd = std.get(eff.params[0].name, math.nan)
+                if math.isfinite(sd) and value > 0.0 and sd <= MAX_RELATIVE_STD * value:
+                    bands[key][band] = value
+                else:
+                    vague[key].append(band)
             continue
         member = None if eff.member is None else [float(v) for v in eff.member]
         if isinstance(eff, CoulombFriction):
@@ -96,9 +109,12 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0) -> Push:
         vals = [per_band.get(b) for b in (1, 2, 3)]
         if all(v is not None and np.isfinite(v) and v > 0.0 for v in vals):
             out[key] = [float(v) for v in vals if v is not None]
+        elif vague[key]:
+            skipped.append(f"{key} (band(s) {sorted(vague[key])} not determined by the data: "
+                           f"standard deviation above {MAX_RELATIVE_STD:.0%} of the value)")
         elif per_band:
             missing = [b for b, v in zip((1, 2, 3), vals, strict=True) if not (v and v > 0.0)]
-            skipped.append(f"{key} (band(s) {missing} not identified or zero)")
+            skipped.append(f"{key} (band(s) {missing} not identified)")
     if not np.all(np.isfinite(out["M"] + out["D"])):
         raise DvtIdentifyError(f"cannot push non-finite M/D: {out['M']} {out['D']}")
     return Push(parameters=out, skipped=skipped)

@@ -13,14 +13,18 @@ from dvt_identify.oe import OEModel
 from dvt_identify.push import model_node_parameters
 
 
-def _stage(effects, values):  # type: ignore[no-untyped-def]
-    """A fitted stage as model_node_parameters sees it: the model and its parameter vector."""
+def _stage(effects, values, rel_std=0.01):  # type: ignore[no-untyped-def]
+    """A fitted stage as model_node_parameters sees it: the model, its parameter vector and
+    standard deviations (``rel_std`` times each value, or per name when a dict)."""
     desc = load_description("dvt")
     model = OEModel(desc.structure, effects)
     theta = model.initial()
     for name, v in values.items():
         theta[model.names.index(name)] = v
-    fit = SimpleNamespace(model=model, theta_=theta)
+    rel = rel_std if isinstance(rel_std, dict) else {}
+    std = {n: abs(float(v)) * rel.get(n, 0.01 if rel else rel_std)
+           for n, v in zip(model.names, theta, strict=True)}
+    fit = SimpleNamespace(model=model, theta_=theta, parameter_std=lambda: std)
     return SimpleNamespace(fit=fit, parameters=lambda: model.parameters(theta)), desc
 
 
@@ -57,4 +61,18 @@ def test_unidentified_band_is_not_pushed_and_said() -> None:
     push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
     assert "brake_gain" not in push.parameters
     assert "brake_time_constant" not in push.parameters
-    assert "brake_gain (band(s) [2, 3] not identified or zero)" in push.skipped
+    assert "brake_gain (band(s) [2, 3] not identified)" in push.skipped
+
+
+def test_band_values_the_data_did_not_determine_are_not_pushed() -> None:
+    desc = load_description("dvt")
+    bands = desc.make_model_effects()
+    values = {e.params[0].name: (8.0 if isinstance(e, BrakeLockup) else 0.02) for e in bands}
+    tau2 = next(e.params[0].name for e in bands if isinstance(e, BrakeEngagement)
+                and desc.input_names[e.index] == "brake2")
+    stage, _ = _stage(bands, values, rel_std={tau2: 0.8})
+    push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
+    np.testing.assert_allclose(push.parameters["brake_gain"], [8.0, 8.0, 8.0])
+    assert "brake_time_constant" not in push.parameters
+    assert push.skipped == ["brake_time_constant (band(s) [2] not determined by the data: "
+                            "standard deviation above 50% of the value)"]
