@@ -565,6 +565,20 @@ def gears_excitation(seed: int = 0, gears: Sequence[int] = (1, 2, 3), shift: flo
                     "amplitude_A": amplitude, "clock_s": clock, "order": order})
 
 
+def _neutral_opening(neutral_prbs: float, neutral_multisine: float, amplitude: float,
+                     clock: float, order: int, seed: int) -> _Schedule:
+    """Schedule opening the identification runs: neutral, PRBS on the motor current
+    (``amplitude`` [A], ``neutral_prbs`` s), then a multisine 0.5 A stronger
+    (``neutral_multisine`` s)."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, t1 = s.phase("neutral-prbs", neutral_prbs)
+    _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 1)
+    t0, t1 = s.phase("neutral-multisine", neutral_multisine)
+    _multisine(s, t0, t1, amplitude + 0.5, 0.0, 200.0, 5.0, 0.2, 20.0, seed, 2)
+    return s
+
+
 def ident(seed: int = 0, neutral_prbs: float = 6.0, neutral_multisine: float = 5.0,
           steps_dwell: float = 1.0, shift: float = 0.8, excite: float = 4.0,
           amplitude: float = 2.5, gear_amplitude: float = 1.5, clock: float = 0.03,
@@ -577,12 +591,7 @@ def ident(seed: int = 0, neutral_prbs: float = 6.0, neutral_multisine: float = 5
     ``amplitude`` [A] is the neutral PRBS level (the multisine peak is 0.5 A more),
     ``gear_amplitude`` [A] the in-gear PRBS level (small enough for the band to hold).
     """
-    s = _Schedule()
-    s.at(0.0, Gear(0))
-    t0, t1 = s.phase("neutral-prbs", neutral_prbs)
-    _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 1)
-    t0, t1 = s.phase("neutral-multisine", neutral_multisine)
-    _multisine(s, t0, t1, amplitude + 0.5, 0.0, 200.0, 5.0, 0.2, 20.0, seed, 2)
+    s = _neutral_opening(neutral_prbs, neutral_multisine, amplitude, clock, order, seed)
     t0, _ = s.phase("neutral-speed-steps", steps_dwell * len(SPEED_STEPS_RPM))
     _speed_steps(s, t0, SPEED_STEPS_RPM, steps_dwell)
     _gear_blocks(s, (1, 2, 3), shift, excite, gear_amplitude, clock, order, seed)
@@ -607,12 +616,7 @@ def ident_shifts(seed: int = 0, neutral_prbs: float = 5.0, neutral_multisine: fl
     gear is selected (``engaged`` s): the band engages against a slipping ring (12 engagements
     and releases with the defaults), then stop.
     """
-    s = _Schedule()
-    s.at(0.0, Gear(0))
-    t0, t1 = s.phase("neutral-prbs", neutral_prbs)
-    _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 1)
-    t0, t1 = s.phase("neutral-multisine", neutral_multisine)
-    _multisine(s, t0, t1, amplitude + 0.5, 0.0, 200.0, 5.0, 0.2, 20.0, seed, 2)
+    s = _neutral_opening(neutral_prbs, neutral_multisine, amplitude, clock, order, seed)
     for rpm in speeds_rpm:
         for g in gears:
             t0, _ = s.phase(f"spin-{rpm:g}rpm", spin)

@@ -122,7 +122,6 @@ class Effect:
         simulation compiles these), or ``None``."""
         return None
 
-
     def dry_capacity(self, p: Array, seg: SegmentView) -> Array | float | None:
         """Dry-friction capacity (>= 0): a number or shape (N,); ``None`` for no dry part."""
         return None

@@ -54,6 +54,28 @@ def smooth_value(kind: int, p0: float, p1: float, s: float) -> float:
 
 
 @njit(cache=True, nogil=True)
+def _dot(c: Array, x: Array) -> float:  # pragma: no cover - compiled
+    """Member speed ``c . x`` (summed in index order)."""
+    s = 0.0
+    for j in range(x.shape[0]):
+        s += c[j] * x[j]
+    return s
+
+
+@njit(cache=True, nogil=True)
+def _member_accel(A: Array, w: Array, extra: Array, x: Array,
+                  c: Array) -> float:  # pragma: no cover - compiled
+    """Member acceleration ``c . (A x + w + extra)`` without dry friction."""
+    ca = 0.0
+    for i in range(x.shape[0]):
+        acc = 0.0
+        for j in range(x.shape[0]):
+            acc += A[i, j] * x[j]
+        ca += c[i] * (acc + w[i] + extra[i])
+    return ca
+
+
+@njit(cache=True, nogil=True)
 def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
                  sc: Array, skind: NDArray[np.int64], spar: Array, sgd: Array, sfc: Array,
                  dc: Array, dcap: Array, dbrk: Array, dgdf: Array, dfcv: Array,
@@ -93,10 +115,7 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
             xn[i] = acc + d[k, i]
             extra[i] = 0.0
         for m in range(ns):
-            s = 0.0
-            for j in range(nx):
-                s += sc[m, j] * x[j]
-            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], s)
+            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], _dot(sc[m], x))
             if tau != 0.0:
                 for i in range(nx):
                     xn[i] += sgd[m, i] * tau
@@ -104,27 +123,18 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
         for g in range(nd):
             cap = dcap[g, k]
             cfc = dcfc[g]
-            s = 0.0
-            for j in range(nx):
-                s += dc[g, j] * x[j]
+            s = _dot(dc[g], x)
             if not rest[g] and s != 0.0:
                 tau = -cap if s > 0.0 else cap
                 for i in range(nx):
                     xn[i] += dgdf[g, i] * tau
-                sn = 0.0
-                for j in range(nx):
-                    sn += dc[g, j] * xn[j]
+                sn = _dot(dc[g], xn)
                 if (sn > 0.0) != (s > 0.0) or sn == 0.0:
                     # crossed zero: stick if the holding force is within the capacity, else go
                     # on with the friction reversed
                     for i in range(nx):
                         xp[i] = xn[i] - dfcv[g, i] * sn / cfc
-                    ca = 0.0
-                    for i in range(nx):
-                        acc = 0.0
-                        for j in range(nx):
-                            acc += A[i, j] * xp[j]
-                        ca += dc[g, i] * (acc + w[k, i] + extra[i])
+                    ca = _member_accel(A, w[k], extra, xp, dc[g])
                     if abs(ca / cfc) <= cap + dbrk[g]:
                         for i in range(nx):
                             xn[i] = xp[i]
@@ -132,27 +142,18 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
                     else:
                         for i in range(nx):
                             xn[i] -= 2.0 * dgdf[g, i] * tau
-                        sn2 = 0.0
-                        for j in range(nx):
-                            sn2 += dc[g, j] * xn[j]
+                        sn2 = _dot(dc[g], xn)
                         if (sn2 > 0.0) == (s > 0.0) or sn2 == 0.0:
                             for i in range(nx):
                                 xn[i] -= dfcv[g, i] * sn2 / cfc
                             rest[g] = True
                 continue
-            ca = 0.0
-            for i in range(nx):
-                acc = 0.0
-                for j in range(nx):
-                    acc += A[i, j] * x[j]
-                ca += dc[g, i] * (acc + w[k, i] + extra[i])
+            ca = _member_accel(A, w[k], extra, x, dc[g])
             req = -ca / cfc
             if abs(req) <= cap + dbrk[g]:
                 for i in range(nx):
                     xn[i] += dgdf[g, i] * req
-                sn = 0.0
-                for j in range(nx):
-                    sn += dc[g, j] * xn[j]
+                sn = _dot(dc[g], xn)
                 for i in range(nx):
                     xn[i] -= dfcv[g, i] * sn / cfc
                 rest[g] = True
@@ -232,7 +233,8 @@ def loop_scalar(a: float, ad: float, w: Array, d: Array, x0: float,
     return out
 
 
-def spline_load_py(w: Array, dt: float, half: float, a: float, b: float, sub: int) -> Array:
+@njit(cache=True, nogil=True)
+def _spline_load_kernel(w: Array, dt: float, half: float, a: float, b: float, sub: int) -> Array:
     """Load-shaft speed behind a compliant spline with play, driven by the member speed.
 
     The member speed ``w`` (N,) is linearly interpolated over each sample interval, which is cut
@@ -280,11 +282,12 @@ def spline_load_py(w: Array, dt: float, half: float, a: float, b: float, sub: in
     return out
 
 
-_spline_load_kernel = njit(cache=True, nogil=True)(spline_load_py)
+spline_load_py = _spline_load_kernel.py_func
+"""The interpreted source of the spline kernel (the reference for the compiled one)."""
 
 
 def spline_load(w: Array, dt: float, half: float, a: float, b: float, sub: int) -> Array:
-    """:func:`spline_load_py`, compiled; shape (N,)."""
+    """Load-shaft speed behind a compliant spline with play (compiled kernel), shape (N,)."""
     return np.asarray(_spline_load_kernel(np.ascontiguousarray(w, dtype=np.float64), float(dt),
                                           float(half), float(a), float(b), int(sub)))
 

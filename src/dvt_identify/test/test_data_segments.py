@@ -63,6 +63,24 @@ def _bag(tmp_path: Path, keep: np.ndarray, n: int, name: str = "bag") -> tuple[P
     return bag, y
 
 
+def _toy_description(tmp_path: Path, **extra: object) -> Path:
+    """Description file of the toy slide (force in, speed out, M and Fv free)."""
+    desc_file = tmp_path / "toy.yaml"
+    desc_file.write_text(yaml.safe_dump({
+        "name": "toy",
+        "inputs": [{"name": "force", "topic": "/toy/drive", "field": "effort",
+                    "joint": "slide"}],
+        "outputs": [{"name": "slide", "topic": "/toy/joint_states", "field": "velocity",
+                     "joint": "slide"}],
+        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
+                      "input_matrix": [[1.0]],
+                      "parameters": {"M": {"initial": 1.0}, "Fv": {"initial": 1.0}}},
+        "checks": {"min_samples": 500},
+        **extra,
+    }))
+    return desc_file
+
+
 def test_split_at_gaps() -> None:
     t = np.array([0.0, 1, 2, 4, 5, 10, 11, 30]) * DT  # gaps of 1, 4 and 18 missing samples
     pieces, gaps = split_at_gaps(t, DT, 3)
@@ -143,19 +161,7 @@ def test_cli_load_segments_keeps_every_segment(tmp_path: Path) -> None:
     keep[1000:1100] = False
     bag, _ = _bag(tmp_path, keep, n)
     other, _ = _bag(tmp_path, np.ones(n, bool), n, name="other")
-    desc_file = tmp_path / "toy.yaml"
-    desc_file.write_text(yaml.safe_dump({
-        "name": "toy",
-        "inputs": [{"name": "force", "topic": "/toy/drive", "field": "effort",
-                    "joint": "slide"}],
-        "outputs": [{"name": "slide", "topic": "/toy/joint_states", "field": "velocity",
-                     "joint": "slide"}],
-        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                      "input_matrix": [[1.0]],
-                      "parameters": {"M": {"initial": 1.0}, "Fv": {"initial": 1.0}}},
-        "checks": {"min_samples": 500},
-        "preprocess": {"decimate": 2},
-    }))
+    desc_file = _toy_description(tmp_path, preprocess={"decimate": 2})
     segs = load_segments([bag, other], load_description(str(desc_file)))
     assert [s.name for s in segs] == [f"{bag}#1", f"{bag}#2", str(other)]
     assert [s.n for s in segs] == [500, 650, 1200]
@@ -175,18 +181,7 @@ def test_cli_runs_on_a_split_bag_and_reports_the_dropped_piece(
     keep[2960:2980] = False  # leaves a 20-sample piece at the end: dropped
     bag, _ = _bag(tmp_path, keep, n)
     val, _ = _bag(tmp_path, np.ones(n, bool), n, name="val")
-    desc_file = tmp_path / "toy.yaml"
-    desc_file.write_text(yaml.safe_dump({
-        "name": "toy",
-        "inputs": [{"name": "force", "topic": "/toy/drive", "field": "effort",
-                    "joint": "slide"}],
-        "outputs": [{"name": "slide", "topic": "/toy/joint_states", "field": "velocity",
-                     "joint": "slide"}],
-        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                      "input_matrix": [[1.0]],
-                      "parameters": {"M": {"initial": 1.0}, "Fv": {"initial": 1.0}}},
-        "checks": {"min_samples": 500},
-    }))
+    desc_file = _toy_description(tmp_path)
     rc = main([str(bag), "--validate", str(val), "--out", str(tmp_path / "out"),
                "--description", str(desc_file), "--no-augment", "--quiet", "--no-plots"])
     assert rc == 0
