@@ -31,3 +31,8 @@ class BagError(DvtModelError, ValueError):
 
     The message names the bag path, the topic and the field.
     """
+
+
+class ContractError(DvtModelError, ValueError):
+    """A value violates the interface contract (topic data, a model-node parameter, an effect
+    term): the message names the parameter or field, the value and what is admissible."""

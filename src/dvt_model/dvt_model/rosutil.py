@@ -26,25 +26,47 @@ from rclpy.qos import (
 )
 from sensor_msgs.msg import JointState
 
-JOINT_STATES = "/dvt/joint_states"
-CURRENTS = "/dvt/currents"
-MODEL_JOINT_STATES = "/dvt/model/joint_states"
-MODEL_RESIDUAL = "/dvt/model/residual"
-DIAGNOSTICS = "/diagnostics"
-SPEED_NAMES = ("sun_shaft", "carrier3")
-CURRENT_NAMES = ("drive_motor", "brake1", "brake2", "brake3")
-
-SENSOR_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=1000,
-    reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE,
+from dvt_model.contract import (
+    COMMAND_QOS as _COMMAND_QOS_SPEC,
 )
+from dvt_model.contract import (
+    CURRENT_NAMES,
+    CURRENTS,
+    DIAGNOSTICS,
+    JOINT_STATES,
+    MODEL_JOINT_STATES,
+    MODEL_RESIDUAL,
+    SPEED_NAMES,
+    QosSpec,
+)
+from dvt_model.contract import (
+    LATCHED_QOS as _LATCHED_QOS_SPEC,
+)
+from dvt_model.contract import (
+    SENSOR_QOS as _SENSOR_QOS_SPEC,
+)
+
+__all__ = ["COMMAND_QOS", "CURRENTS", "CURRENT_NAMES", "DIAGNOSTICS", "JOINT_STATES",
+           "LATCHED_QOS", "MODEL_JOINT_STATES", "MODEL_RESIDUAL", "SENSOR_QOS", "SPEED_NAMES",
+           "qos"]
+
+
+def qos(spec: QosSpec) -> QoSProfile:
+    """The rclpy profile of a contract :class:`~dvt_model.contract.QosSpec`."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=spec.depth,
+        reliability=(ReliabilityPolicy.BEST_EFFORT if spec.reliability == "best_effort"
+                     else ReliabilityPolicy.RELIABLE),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if spec.durability == "transient_local"
+                    else DurabilityPolicy.VOLATILE))
+
+
+SENSOR_QOS = qos(_SENSOR_QOS_SPEC)
 """High-rate streams (publishers and subscribers)."""
-
-COMMAND_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=10,
-    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-)
+COMMAND_QOS = qos(_COMMAND_QOS_SPEC)
 """Commands to the driver: every command counts."""
+LATCHED_QOS = qos(_LATCHED_QOS_SPEC)
+"""Results a late subscriber must still get."""
 
 
 def stamp_to_ns(stamp: Time) -> int:

@@ -1,0 +1,264 @@
+"""The interface contract in one place (pure: no rclpy).
+
+Everything two parts of the suite must agree on lives here and is imported, never retyped:
+topic and service names, joint names, the QoS of each stream (as data; :mod:`dvt_model.rosutil`
+turns it into rclpy profiles), and the schema of the effect terms the identifier pushes to the
+model node, with their physical admissibility (:func:`validate_effects`).
+
+The human-readable contract is ``../shared/INTERFACE.md`` plus the project's ``docs/``; this
+module is its executable form. Units are SI, conventions REP-103.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from dvt_model.errors import ContractError
+
+# --------------------------------------------------------------------------- topics and names
+JOINT_STATES = "/dvt/joint_states"
+"""Measured speeds [rad/s] (``velocity``) of :data:`SPEED_NAMES`, one message per sample."""
+CURRENTS = "/dvt/currents"
+"""Measured winding currents [A] (``effort``) of :data:`CURRENT_NAMES`, same stamp."""
+MODEL_JOINT_STATES = "/dvt/model/joint_states"
+"""The model node's prediction (``velocity``), stamped like the measured sample."""
+MODEL_RESIDUAL = "/dvt/model/residual"
+"""Measured - predicted (``velocity``), stamped like the measured sample."""
+DIAGNOSTICS = "/diagnostics"
+
+CMD_MOTOR_CURRENT = "/dvt/cmd/motor_current"
+CMD_SUN_SPEED = "/dvt/cmd/sun_speed"
+CMD_BRAKE_CURRENTS = "/dvt/cmd/brake_currents"
+CMD_GEAR = "/dvt/cmd/gear"
+COMMAND_TOPICS: tuple[str, ...] = (CMD_MOTOR_CURRENT, CMD_SUN_SPEED, CMD_BRAKE_CURRENTS, CMD_GEAR)
+COMMAND_PATTERN = "/dvt/cmd/*"
+SRV_DRIVER_STOP = "/dvt/driver/stop"
+SRV_DRIVER_RELEASE_BRAKES = "/dvt/driver/release_brakes"
+
+IDENTIFY_REQUEST = "/dvt/identify/request"
+IDENTIFY_RESULT = "/dvt/identify/result"
+SRV_IDENTIFY_RUN = "/dvt/identify/run"
+
+SAMPLE_TOPICS: tuple[str, ...] = (JOINT_STATES, CURRENTS)
+"""The two topics of one controller sample (identical ``header.stamp``)."""
+MODEL_TOPICS: tuple[str, ...] = (MODEL_JOINT_STATES, MODEL_RESIDUAL)
+DEFAULT_RECORD_TOPICS: tuple[str, ...] = (*SAMPLE_TOPICS, *MODEL_TOPICS, COMMAND_PATTERN,
+                                          DIAGNOSTICS)
+"""What a recording holds by default (patterns allowed)."""
+
+JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
+SPEED_NAMES: tuple[str, ...] = ("sun_shaft", "carrier3")
+CURRENT_NAMES: tuple[str, ...] = ("drive_motor", "brake1", "brake2", "brake3")
+BRAKE_NAMES: tuple[str, ...] = CURRENT_NAMES[1:]
+
+DRIVER_NODE = "dvt_driver"
+MODEL_NODE = "dvt_model"
+IDENTIFY_NODE = "dvt_identify"
+RECORDER_NODE = "dvt_recorder"
+
+
+# --------------------------------------------------------------------------------- QoS as data
+@dataclass(frozen=True)
+class QosSpec:
+    """A QoS profile as data: history depth, reliability and durability."""
+
+    depth: int
+    reliability: Literal["best_effort", "reliable"]
+    durability: Literal["volatile", "transient_local"] = "volatile"
+
+
+SENSOR_QOS = QosSpec(depth=1000, reliability="best_effort")
+"""High-rate streams (publishers and subscribers): a deep queue absorbs bursts; a best-effort
+subscription matches both best-effort and reliable publishers."""
+COMMAND_QOS = QosSpec(depth=10, reliability="reliable")
+"""Commands to the driver: every command counts."""
+LATCHED_QOS = QosSpec(depth=1, reliability="reliable", durability="transient_local")
+"""Results a late subscriber must still get (the identifier's result)."""
+DIAGNOSTICS_QOS = QosSpec(depth=10, reliability="reliable")
+
+
+# ------------------------------------------------------------------------ effect-term schema
+@dataclass(frozen=True)
+class TermParam:
+    """One numeric field of an effect term.
+
+    ``lo``/``hi`` are the admissible range; ``lo_open``/``hi_open`` make a bound strict.
+    """
+
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    lo_open: bool = False
+    hi_open: bool = False
+    default: float | None = None
+    doc: str = ""
+
+    def check(self, value: Any, where: str) -> float:
+        """The value as a float, or :class:`ContractError` naming ``where``, field and value."""
+        if isinstance(value, bool) or not isinstance(value, int | float) \
+                or not math.isfinite(value):
+            raise ContractError(f"{where}.{self.name}: expected a finite number [{self.unit}], "
+                                f"got {value!r}")
+        v = float(value)
+        below = v <= self.lo if self.lo_open else v < self.lo
+        above = v >= self.hi if self.hi_open else v > self.hi
+        if below or above:
+            raise ContractError(
+                f"{where}.{self.name}: {v!r} [{self.unit}] is not admissible: expected "
+                f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
+                f"{')' if self.hi_open else ']'}" + (f" ({self.doc})" if self.doc else ""))
+        return v
+
+
+@dataclass(frozen=True)
+class TermKind:
+    """A kind of effect term: a generalised force on a member, or an output transform."""
+
+    kind: str
+    params: tuple[TermParam, ...]
+    member: bool
+    """True: a force on the member speed ``v = member . omega`` (field ``member``, 2 numbers)."""
+    output: bool = False
+    """True: the term names an output index (field ``output``)."""
+    doc: str = ""
+
+    def param(self, name: str) -> TermParam:
+        for p in self.params:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+
+MAX_MEMBER = 1.0e3
+"""Largest admissible |member coefficient| (a member speed is a small combination of speeds)."""
+MAX_EFFECT_TERMS = 32
+"""Most effect terms the model node takes (each costs time in every 1 kHz step)."""
+MAX_EFFECTS_JSON = 64 * 1024
+"""Longest ``effects`` JSON text [characters]."""
+DEFAULT_EPS = 0.5
+"""Default smoothing speed of the sign in force laws [rad/s] (see :mod:`dvt_model.friction`)."""
+
+_EPS = TermParam("eps", "rad/s", 1e-6, 1e3, default=DEFAULT_EPS,
+                 doc="speed below which the sign is smoothed")
+_TORQUE_MAX = 1e4
+
+EFFECT_TERMS: dict[str, TermKind] = {k.kind: k for k in (
+    TermKind("coulomb", (
+        TermParam("Fc", "N m", 0.0, _TORQUE_MAX, doc="dry friction level, >= 0"),
+        TermParam("offset", "N m", -_TORQUE_MAX, _TORQUE_MAX, default=0.0,
+                  doc="constant torque against the positive direction"),
+        _EPS), member=True, doc="Fc sign_eps(v) + offset"),
+    TermKind("stribeck", (
+        TermParam("Fs", "N m", 0.0, _TORQUE_MAX, doc="Stribeck excess, >= 0"),
+        TermParam("vs", "rad/s", 0.0, 1e4, lo_open=True, doc="Stribeck speed, > 0"),
+        _EPS), member=True, doc="Fs exp(-(v/vs)^2) sign_eps(v)"),
+    TermKind("windage", (
+        TermParam("Cw", "N m s^2", 0.0, 1e3, doc="quadratic drag, >= 0"),),
+        member=True, doc="Cw |v| v"),
+    TermKind("viscous", (
+        TermParam("b", "N m s", 0.0, 1e3, doc="viscous drag, >= 0"),),
+        member=True, doc="b v"),
+    TermKind("delay", (
+        TermParam("seconds", "s", 0.0, 1.0, doc="measurement delay"),),
+        member=False, doc="outputs delayed by whole samples"),
+    TermKind("gain", (
+        TermParam("gain", "1", -0.5, 1.0, lo_open=True,
+                  doc="relative sensor scale error: output scaled by 1 + gain > 0.5"),),
+        member=False, output=True, doc="output scaled by 1 + gain"),
+)}
+"""Every effect term the model node understands, by ``kind``."""
+
+
+def validate_term(entry: Any, where: str = "effects[0]",
+                  n_outputs: int = len(SPEED_NAMES)) -> dict[str, Any]:
+    """Check one effect term and return it normalised (defaults filled, floats).
+
+    Raises:
+        ContractError: naming ``where``, the field and the value.
+    """
+    if not isinstance(entry, Mapping):
+        raise ContractError(f"{where}: expected an object, got {entry!r}")
+    kind = entry.get("kind")
+    spec = EFFECT_TERMS.get(kind) if isinstance(kind, str) else None
+    if spec is None:
+        raise ContractError(f"{where}.kind: expected one of {sorted(EFFECT_TERMS)}, got {kind!r}")
+    allowed = {"kind", *(p.name for p in spec.params)}
+    if spec.member:
+        allowed.add("member")
+    if spec.output:
+        allowed.add("output")
+    unknown = sorted(set(entry) - allowed)
+    if unknown:
+        raise ContractError(f"{where}: unknown field(s) {unknown} for kind {kind!r} "
+                            f"(expected {sorted(allowed)})")
+    out: dict[str, Any] = {"kind": kind}
+    if spec.member:
+        raw = entry.get("member")
+        ok = (isinstance(raw, Sequence) and not isinstance(raw, str) and len(raw) == n_outputs
+              and all(not isinstance(v, bool) and isinstance(v, int | float)
+                      and math.isfinite(v) and abs(v) <= MAX_MEMBER for v in raw))
+        if not ok or not any(float(v) != 0.0 for v in raw):
+            raise ContractError(f"{where}.member: expected {n_outputs} finite numbers, not all "
+                                f"zero, each |m| <= {MAX_MEMBER:g}, got {raw!r}")
+        out["member"] = [float(v) for v in raw]
+    if spec.output:
+        o = entry.get("output")
+        if isinstance(o, bool) or not isinstance(o, int) or not 0 <= o < n_outputs:
+            raise ContractError(f"{where}.output: expected an output index 0..{n_outputs - 1}, "
+                                f"got {o!r}")
+        out["output"] = int(o)
+    for p in spec.params:
+        if p.name in entry:
+            out[p.name] = p.check(entry[p.name], where)
+        elif p.default is not None:
+            out[p.name] = p.default
+        else:
+            raise ContractError(f"{where}.{p.name}: missing (kind {kind!r} needs "
+                                f"{[q.name for q in spec.params if q.default is None]})")
+    return out
+
+
+def validate_effects(data: str | Sequence[Any] | None, n_outputs: int = len(SPEED_NAMES)
+                     ) -> list[dict[str, Any]]:
+    """Check the model node's ``effects`` (JSON text or decoded list); '' / None: no terms.
+
+    Also checks the list as a whole: at most :data:`MAX_EFFECT_TERMS` terms, at most one
+    ``delay`` and one ``gain`` per output.
+
+    Raises:
+        ContractError: naming the entry index, the field and the value.
+    """
+    if data is None:
+        return []
+    if isinstance(data, str):
+        if len(data) > MAX_EFFECTS_JSON:
+            raise ContractError(f"effects: {len(data)} characters of JSON, at most "
+                                f"{MAX_EFFECTS_JSON} allowed")
+        if not data.strip():
+            return []
+        try:
+            data = json.loads(data)
+        except json.JSONDecodeError as exc:
+            raise ContractError(f"effects: not valid JSON: {exc}") from exc
+    if not isinstance(data, list | tuple):
+        raise ContractError(f"effects: expected a JSON list, got {type(data).__name__}")
+    if len(data) > MAX_EFFECT_TERMS:
+        raise ContractError(f"effects: {len(data)} terms, at most {MAX_EFFECT_TERMS} allowed")
+    terms = [validate_term(e, f"effects[{i}]", n_outputs) for i, e in enumerate(data)]
+    delays = [i for i, t in enumerate(terms) if t["kind"] == "delay"]
+    if len(delays) > 1:
+        raise ContractError(f"effects: more than one delay term (entries {delays})")
+    outs = [t["output"] for t in terms if t["kind"] == "gain"]
+    if len(outs) != len(set(outs)):
+        raise ContractError(f"effects: more than one gain term for one output ({outs})")
+    return terms
+
+
+def effects_json(terms: Sequence[Mapping[str, Any]]) -> str:
+    """The ``effects`` parameter text for ``terms``, validated first (what the node takes)."""
+    return json.dumps(validate_effects(list(terms)))

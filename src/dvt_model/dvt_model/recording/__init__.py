@@ -1,0 +1,1 @@
+"""Recordings: the only code that writes, reads, pairs, recovers and summarises them (pure)."""
