@@ -83,7 +83,7 @@ done
 import sys
 from pathlib import Path
 
-from dvt_model.bagio import read_run, sample_period
+from dvt_model.recording import read_run, sample_period
 
 out = Path(sys.argv[1])
 for bag in sorted(p for p in out.iterdir() if (p / "metadata.yaml").exists()):

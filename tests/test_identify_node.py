@@ -13,9 +13,9 @@ from std_srvs.srv import Trigger
 from test_model_node import NOISE, _Listener
 
 from conftest import wait_for
-from dvt_model.bagio import write_run
 from dvt_model.hybrid import HybridModel
 from dvt_model.params import load_parameters
+from dvt_model.recording import write_run
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -88,7 +88,7 @@ def test_refit_and_push_shrinks_live_residual(procs, rclpy_context, tmp_path):
     truth = HybridModel.from_params(load_parameters("physical")).rigid.M
     assert np.allclose(np.reshape(M, (2, 2)), truth, rtol=0.05), (M, truth)
     # only band 1 is used in these runs: the band parameters are not pushed, and that is said
-    assert any(s.startswith("brake_gain (band(s) [2, 3] not identified")
+    assert any(s.startswith("band_gain (band(s) [2, 3] not identified")
                for s in summary["not_pushed"]), summary
     after = _residual_rms(listener, procs, val)
     # the refitted model (fitted at the description's 200 Hz, M within a few % of the plant)

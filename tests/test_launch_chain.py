@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from conftest import Procs, wait_for
-from dvt_model.bagio import read_run, sample_period
+from dvt_model.recording import read_run, sample_period
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -31,7 +31,7 @@ from dvt_model.bagio import read_run, sample_period
 ])
 def test_launch_refuses_bad_arguments(args: list[str], message: str,
                                       capsys: pytest.CaptureFixture[str]) -> None:
-    from dvt_driver.launch import parse_args
+    from dvt_driver.run.launch import parse_args
 
     with pytest.raises(SystemExit) as exc:
         parse_args(args)
@@ -41,7 +41,7 @@ def test_launch_refuses_bad_arguments(args: list[str], message: str,
 
 def test_launch_refuses_an_existing_recording(tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
-    from dvt_driver.launch import parse_args
+    from dvt_driver.run.launch import parse_args
 
     with pytest.raises(SystemExit):
         parse_args(["sim", "--record", str(tmp_path)])

@@ -26,21 +26,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from conftest import Procs, script, wait_for
-from dvt_model.bagio import (
-    CURRENT_NAMES,
-    CURRENTS_TOPIC,
-    JOINT_STATES_TOPIC,
-    SPEED_NAMES,
-    read_run,
-    typestore,
-)
+from dvt_model.contract import CURRENT_NAMES, CURRENTS, JOINT_STATES, SPEED_NAMES
+from dvt_model.recording import read_run, typestore
 
 pytestmark = pytest.mark.ros
 
 RATE = 500.0  # Hz
 N = 2000
 T0 = 1_700_000_000 * 10**9
-# What the driver uses for the high-rate streams (see dvt_driver.recorder docstring).
+# What the driver uses for the high-rate streams (see dvt_driver.recording.node docstring).
 DRIVER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
@@ -51,8 +45,8 @@ class _Publisher:
 
     def __init__(self, ctx: Any, qos: QoSProfile = DRIVER_QOS) -> None:
         self.node = rclpy.create_node("test_sample_publisher", context=ctx)
-        self.js = self.node.create_publisher(JointState, JOINT_STATES_TOPIC, qos)
-        self.cu = self.node.create_publisher(JointState, CURRENTS_TOPIC, qos)
+        self.js = self.node.create_publisher(JointState, JOINT_STATES, qos)
+        self.cu = self.node.create_publisher(JointState, CURRENTS, qos)
 
     def wait_matched(self, timeout: float = 30.0) -> None:
         wait_for(lambda: self.js.get_subscription_count() >= 1
@@ -122,7 +116,7 @@ def test_recorder_keeps_every_sample(procs: Procs, rclpy_context: Any, tmp_path:
         pub.close()
     assert procs.stop(rec) == 0, procs.log(rec)
     log = procs.log(rec)
-    assert f"{JOINT_STATES_TOPIC}={N}" in log and f"{CURRENTS_TOPIC}={N}" in log, log
+    assert f"{JOINT_STATES}={N}" in log and f"{CURRENTS}={N}" in log, log
 
     run = read_run(bag)
     assert run.n == N
@@ -175,7 +169,7 @@ def test_killed_recorder_is_recovered(procs: Procs, rclpy_context: Any, tmp_path
 
     info = subprocess.run([script("dvt-bag"), "info", str(bag)], capture_output=True,
                           text=True, timeout=60, env=procs.env)
-    assert info.returncode == 0 and JOINT_STATES_TOPIC in info.stdout
+    assert info.returncode == 0 and JOINT_STATES in info.stdout
 
 
 def test_best_effort_publisher_is_recorded(procs: Procs, rclpy_context: Any,

@@ -15,12 +15,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from dvt_driver.experiment_core import build
-from dvt_driver.hidden import parse_hidden
-from dvt_driver.offline import record_offline
-from dvt_identify.cli import drop_unexcited_model_effects, load_segments
+from dvt_driver.plant.hidden import parse_hidden
+from dvt_driver.plant.offline import record_offline
+from dvt_driver.run.experiment_core import build
 from dvt_identify.description import load_description
 from dvt_identify.loop import LoopConfig, identify
+from dvt_identify.pipeline import drop_unexcited_model_effects, load_segments
 from dvt_model.params import load_parameters
 
 pytestmark = pytest.mark.slow

@@ -10,7 +10,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
     ],
-    package_data={package_name: ['param_sets/*.yaml', 'py.typed']},
+    package_data={package_name: ['param_sets/*.yaml', 'design/*.yaml', 'py.typed']},
     include_package_data=True,
     install_requires=['setuptools'],
     zip_safe=False,

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dvt_driver.clock import ClockError, ClockMapper
+from dvt_driver.errors import ClockError
+from dvt_driver.link.clock import ClockMapper
 
 OFFSET = 1_700_000_000 * 10**9  # ns: host time at controller t = 0
 

@@ -8,12 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from dvt_driver import experiment_core as ec
-from dvt_driver.experiment_core import (
+from dvt_driver.errors import ExperimentError
+from dvt_driver.link.safety import Limits as DriverLimits
+from dvt_driver.plant.hidden import load_hidden
+from dvt_driver.plant.offline import run_offline
+from dvt_driver.run import experiment_core as ec
+from dvt_driver.run.experiment_core import (
     RPM,
     BrakeCurrents,
     Experiment,
-    ExperimentError,
     Gear,
     Limits,
     MotorCurrent,
@@ -22,9 +25,6 @@ from dvt_driver.experiment_core import (
     Step,
     SunSpeed,
 )
-from dvt_driver.hidden import load_hidden
-from dvt_driver.offline import run_offline
-from dvt_driver.safety import Limits as DriverLimits
 from dvt_model.params import load_parameters
 
 
@@ -193,7 +193,7 @@ def test_sample_holds_commands() -> None:
 
 # ------------------------------------------------------------------ offline run on the plant core
 def simulate(e: Experiment, hidden: str = "none") -> dict[str, np.ndarray]:
-    """Run ``e`` through the driver's supervisor into the plant core (dvt_driver.offline)."""
+    """Run ``e`` through the driver's supervisor into the plant core (dvt_driver.plant.offline)."""
     r = run_offline(e, load_parameters("physical"), load_hidden(hidden), seed=1)
     return {"t": r.t - r.t[0], "sun": r.speeds[:, 0], "c3": r.speeds[:, 1],
             "i": r.currents[:, 0], "gear": r.gear.astype(float), "sun_true": r.omega_true[:, 0],
@@ -228,7 +228,7 @@ def test_ident_runs_on_the_plant_core_within_limits_and_bands_hold(hidden: str) 
 
 
 def test_cli_settings_are_parsed_as_yaml() -> None:
-    from dvt_driver.experiment import parse_settings
+    from dvt_driver.run.experiment import parse_settings
 
     assert parse_settings(["amplitude=2", "speeds_rpm=[1500, 2000]", "clock=0.05"]) == {
         "amplitude": 2, "speeds_rpm": (1500, 2000), "clock": 0.05}

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import yaml
 
-from dvt_driver.hidden import (
+from dvt_driver.errors import HiddenEffectsError
+from dvt_driver.plant.hidden import (
     MEMBERS,
     FrictionForces,
     HiddenEffects,
-    HiddenEffectsError,
     StribeckFriction,
     WetBrake,
     WetBrakeEngagement,
@@ -23,7 +23,8 @@ from dvt_driver.hidden import (
 )
 from dvt_model.brake import capacity_step
 
-PRESETS = ["backlash", "coulomb", "delay", "none", "stribeck", "wet_brake", "windage"]
+PRESETS = ["backlash", "coulomb", "delay", "gravity_arm", "mesh_ripple", "none",
+           "position_friction", "stribeck", "wet_brake", "windage"]
 
 
 def test_presets_are_bundled_and_valid() -> None:
@@ -31,7 +32,8 @@ def test_presets_are_bundled_and_valid() -> None:
     expected = {"none": ["none"], "coulomb": ["coulomb_friction"],
                 "stribeck": ["stribeck_friction"], "windage": ["windage"],
                 "backlash": ["backlash"], "delay": ["measurement_delay"],
-                "wet_brake": ["brake_engagement"]}
+                "wet_brake": ["brake_engagement"], "gravity_arm": ["gravity_load"],
+                "mesh_ripple": ["mesh_ripple"], "position_friction": ["position_friction"]}
     for name in PRESETS:
         h = load_hidden(name)
         assert h.effect_names() == expected[name], name
@@ -203,3 +205,39 @@ def test_wet_brake_shape_is_viscous_then_asperity() -> None:
     cap, _ = eng(cap, np.zeros(3), 0.01, ring)
     assert cap[0] == pytest.approx(2.0 * np.exp(-1.0))
     assert eng.applied_time[0] == 0.0
+
+
+def test_position_effects_parse_round_trip_and_refuse_bad_values() -> None:
+    data = {"gravity_arm": {"output_stage": {"reduction": 20.0},
+                            "arm": {"length": 0.5, "mass": 10.0, "payload": 2.0}},
+            "mesh_ripple": {"amplitude": 0.03, "stage": 3, "phase": 0.5},
+            "position_friction": {"carrier3": {"amplitude": 0.3, "center": 1.0, "width": 0.3}}}
+    h = parse_hidden(data, source="pos")
+    assert h.has_angle_effects and not h.is_clean
+    assert h.effect_names() == ["gravity_load", "mesh_ripple", "position_friction"]
+    assert h.mesh_ripple is not None and h.mesh_ripple.stage == 3
+    again = parse_hidden(h.to_mapping(), source="again")
+    assert again.to_mapping() == h.to_mapping()
+    for bad, match in (({"mesh_ripple": {"amplitude": 0.1, "stage": 4}}, "mesh_ripple.stage"),
+                       ({"mesh_ripple": {"amplitude": -1}}, "mesh_ripple.amplitude"),
+                       ({"position_friction": {"moon": {"amplitude": 1, "center": 0,
+                                                        "width": 1}}}, "moon"),
+                       ({"position_friction": {"sun": {"amplitude": 1, "center": 0,
+                                                       "width": 0}}}, "width"),
+                       ({"gravity_arm": {"output_stage": {"reduction": 0},
+                                         "arm": {"length": 1, "mass": 1}}}, "reduction")):
+        with pytest.raises(HiddenEffectsError, match=match):
+            parse_hidden(bad, source="bad")
+
+
+def test_mesh_ripple_step_mean_and_bump_level() -> None:
+    from dvt_driver.plant.hidden import MeshRipple, PositionFriction
+    r = MeshRipple(amplitude=2.0)
+    # the step mean equals the numerical mean of the sine over the step
+    grid = np.linspace(0.0, 1e-3, 10001)
+    exact = np.mean(2.0 * np.sin(16 * (0.3 + 100.0 * grid)))
+    assert r.mean_torque(16, 0.3, 100.0, 1e-3) == pytest.approx(exact, rel=1e-3, abs=1e-6)
+    assert r.mean_torque(16, 0.3, 0.0, 1e-3) == pytest.approx(2.0 * np.sin(4.8))
+    b = PositionFriction(amplitude=0.3, center=1.0, width=0.3)
+    assert b.level(1.0) == pytest.approx(0.3) and b.level(1.0 + 2 * np.pi) == pytest.approx(0.3)
+    assert b.level(1.0 + np.pi) < 1e-6

@@ -18,8 +18,7 @@ from typing import Any
 import pytest
 
 from dvt_driver.errors import LinkError, ProtocolError
-from dvt_driver.link import LinkState, LinkStats, SerialLink
-from dvt_driver.protocol import (
+from dvt_driver.link.protocol import (
     Ack,
     Command,
     Config,
@@ -33,6 +32,7 @@ from dvt_driver.protocol import (
     Status,
     encode,
 )
+from dvt_driver.link.serial_link import LinkState, LinkStats, SerialLink
 
 WAIT = 5.0  # s: generous upper bound for any single wait; tests poll with a deadline
 

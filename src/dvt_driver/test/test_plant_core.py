@@ -11,15 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from dvt_driver.hidden import HiddenEffects, load_hidden, parse_hidden
-from dvt_driver.plant_core import (
-    RPM,
-    PlantError,
-    PlantSim,
-    SafetyLimits,
-    SampleValues,
-)
-from dvt_driver.protocol import (
+from dvt_driver.errors import PlantError
+from dvt_driver.link.protocol import (
     Ack,
     Command,
     Config,
@@ -31,6 +24,13 @@ from dvt_driver.protocol import (
     NackReason,
     Status,
 )
+from dvt_driver.plant.core import (
+    RPM,
+    PlantSim,
+    SafetyLimits,
+    SampleValues,
+)
+from dvt_driver.plant.hidden import HiddenEffects, load_hidden, parse_hidden
 from dvt_model.params import TransmissionParams, load_parameters
 
 OFF3 = (0.0, 0.0, 0.0)
@@ -169,7 +169,7 @@ def test_watchdog_can_be_disabled() -> None:
     sim.handle(current(1.0))
     out = [sim.tick() for _ in range(500)]
     assert all(s.status & Status.ENABLED for s in out)
-    assert sim.handle(Hello()) == [HelloAck(1, 1000, 0, "dvt-plant-sim 0.1")]
+    assert sim.handle(Hello(1)) == [HelloAck(1, 1000, 0, "dvt-plant-sim 0.1")]
 
 
 def test_overspeed_trips_latches_and_is_cleared_by_off() -> None:
@@ -236,13 +236,14 @@ def test_session_rules() -> None:
     assert not sim.session_open
     assert sim.handle(current(1.0)) == [Nack(FrameType.COMMAND, 2, NackReason.NOT_READY)]
     assert sim.handle(Config(9, 2000)) == [Nack(FrameType.CONFIG, 9, NackReason.NOT_READY)]
-    assert sim.handle(Hello(2)) == [Nack(FrameType.HELLO, 0, NackReason.UNSUPPORTED_VERSION)]
-    assert sim.handle(Hello()) == [HelloAck(1, 1000, 200000, "dvt-plant-sim 0.1")]
+    assert sim.handle(Hello(3)) == [Nack(FrameType.HELLO, 0, NackReason.UNSUPPORTED_VERSION)]
+    assert sim.handle(Hello()) == [HelloAck(2, 1000, 200000, "dvt-plant-sim 0.1", 4096, 16384)]
+    assert sim.handle(Hello(1)) == [HelloAck(1, 1000, 200000, "dvt-plant-sim 0.1")]
     assert sim.handle(Ack(FrameType.COMMAND, 1)) == []  # device-bound only
     a = [sim.tick() for _ in range(3)]
     assert sim.handle(Config(10, 2000)) == [Ack(FrameType.CONFIG, 10)]
     assert sim.handle(Config(11, 100)) == [Nack(FrameType.CONFIG, 11, NackReason.INVALID_VALUE)]
-    assert sim.handle(Hello()) == [HelloAck(1, 2000, 200000, "dvt-plant-sim 0.1")]
+    assert sim.handle(Hello()) == [HelloAck(2, 2000, 200000, "dvt-plant-sim 0.1", 4096, 16384)]
     b = [sim.tick() for _ in range(3)]
     assert [s.seq for s in a + b] == [0, 1, 2, 3, 4, 5]
     assert [s.t_us for s in a + b] == [0, 1000, 2000, 3000, 5000, 7000]
@@ -252,9 +253,12 @@ def test_session_rules() -> None:
 
 
 def test_config_refuses_periods_the_line_cannot_carry() -> None:
-    sim = make(period_us=5000, baud=115200)  # 268 samples/s
+    sim = make(period_us=5000, baud=115200)  # 268 samples/s (version 1), 226 (version 2)
     assert sim.handle(Config(1, 1000)) == [Nack(FrameType.CONFIG, 1, NackReason.INVALID_VALUE)]
-    assert sim.handle(Config(2, 4000)) == [Ack(FrameType.CONFIG, 2)]
+    assert sim.handle(Config(2, 4000)) == [Nack(FrameType.CONFIG, 2, NackReason.INVALID_VALUE)]
+    assert sim.handle(Config(3, 4500)) == [Ack(FrameType.CONFIG, 3)]
+    assert sim.handle(Hello(1)) == [HelloAck(1, 4500, 200000, "dvt-plant-sim 0.1")]
+    assert sim.handle(Config(2, 4000)) == [Ack(FrameType.CONFIG, 2)]  # 43-byte samples
     with pytest.raises(PlantError, match=r"sample period: 1000 µs is shorter than one sample"):
         PlantSim(params(), None, 1000, baud=115200)
     with pytest.raises(PlantError, match=r"sample period: expected 500\.\.1000000 µs, got 20"):
@@ -435,3 +439,84 @@ def test_bad_settings() -> None:
         PlantSim(params(), None, 1000, max_step=0)
     with pytest.raises(PlantError, match=r"watchdog_timeout: expected >= 0 s, got -1"):
         PlantSim(params(), None, 1000, limits=SafetyLimits(watchdog_timeout=-1))
+
+
+# -- positions, protocol versions, joint load, position-dependent hidden effects ---------------
+
+def _unwrap_positions(out: Sequence[SampleValues], cpr: tuple[int, int]) -> np.ndarray:
+    from dvt_driver.link.protocol import unwrap_count
+    acc: list[int] | None = None
+    rows = []
+    for v in out:
+        assert v.counts is not None
+        acc = list(v.counts) if acc is None else [unwrap_count(acc[j], v.counts[j]) for j in (0, 1)]
+        rows.append([2 * math.pi * acc[j] / cpr[j] for j in (0, 1)])
+    return np.asarray(rows)
+
+
+def test_v2_samples_carry_encoder_counts_of_the_true_angles() -> None:
+    sim = make()
+    out = run(sim, 2.0, lambda t: Command(0, Mode.CURRENT, 2.0, (1.0 if t > 0.5 else 0.0, 0, 0)))
+    assert sim.session_version == 2
+    pos = _unwrap_positions(out, (4096, 16384))
+    true = np.array([v.theta_true for v in out])
+    assert true[-1, 0] > 50.0  # turned many revolutions
+    # one count of resolution: the encoders floor the true angle
+    assert np.all(np.abs(pos[:, 0] - true[:, 0]) <= 2 * math.pi / 4096 + 1e-9)
+    assert np.all(np.abs(pos[:, 1] - true[:, 1]) <= 2 * math.pi / 16384 + 1e-9)
+    frame = out[-1].to_sample()
+    assert frame.counts == out[-1].counts
+
+
+def test_v1_session_has_no_counts_and_a_v1_plant_refuses_hello2() -> None:
+    sim = PlantSim(params(), None, 1000, 1)
+    assert sim.handle(Hello(1)) == [HelloAck(1, 1000, 200000, "dvt-plant-sim 0.1")]
+    assert sim.tick().counts is None and sim.tick().to_sample().counts is None
+    old = PlantSim(params(), None, 1000, 1, protocol_version=1)
+    assert old.handle(Hello(2)) == [Nack(FrameType.HELLO, 0, NackReason.UNSUPPORTED_VERSION)]
+    assert old.handle(Hello(1))[0] == HelloAck(1, 1000, 200000, "dvt-plant-sim 0.1")
+    assert old.tick().counts is None
+    with pytest.raises(PlantError, match="protocol_version"):
+        PlantSim(params(), None, 1000, protocol_version=3)
+
+
+def test_controller_reset_rezeroes_the_sun_counts_but_not_the_output_encoder() -> None:
+    sim = make()
+    run(sim, 1.0, Command(0, Mode.CURRENT, 2.0, (1.0, 0.0, 0.0)))
+    before = sim.tick()
+    assert before.counts is not None and before.counts[0] > 1000 and before.counts[1] > 100
+    sim.reset_controller()
+    assert isinstance(sim.handle(Hello())[0], HelloAck)
+    after = sim.tick()
+    assert after.counts is not None
+    assert abs(after.counts[0]) < 200  # restarted near 0 (the shaft still coasts)
+    assert after.counts[1] >= before.counts[1] - 5  # absolute: continues
+
+
+def test_declared_arm_load_hangs_still_and_is_lifted_in_gear_3() -> None:
+    from dvt_model.load import load_joint_load
+    load = load_joint_load("arm-payload")
+    assert load is not None
+    sim = make(load=load)
+    assert sim.model.rigid.M[1, 1] > load.reflected_inertia
+    idle = run(sim, 0.5, Command(0, Mode.OFF, 0.0, (0.0, 0.0, 0.0)))
+    assert max(abs(v.omega_true[1]) for v in idle) < 1e-6  # hanging: no gravity torque
+    out = run(sim, 3.0, Command(0, Mode.SPEED, 150.0, (0.0, 0.0, 6.0)))
+    theta = float(load.arm_angle(out[-1].theta_true[1]))
+    assert theta > -math.pi / 2 + 0.05  # the arm rose
+    truth = yaml.safe_load(sim.truth_yaml())
+    assert truth["plant"]["load"]["name"] == "arm-payload"
+    assert truth["plant"]["encoders"]["output_counts_per_rev"] == 16384
+
+
+def test_position_dependent_hidden_presets_act_and_are_in_truth() -> None:
+    cmd = Command(0, Mode.CURRENT, 0.3, (0.0, 0.0, 3.0))
+    clean = np.array([v.omega_true for v in run(make("none"), 2.0, cmd)])
+    for name, effect in (("gravity_arm", "gravity_load"), ("mesh_ripple", "mesh_ripple"),
+                         ("position_friction", "position_friction")):
+        sim = make(name)
+        w = np.array([v.omega_true for v in run(sim, 2.0, cmd)])
+        assert np.all(np.isfinite(w))
+        assert np.max(np.abs(w - clean)) > 1e-3, name
+        truth = yaml.safe_load(sim.truth_yaml())
+        assert truth["effects"] == [effect] and name in truth["hidden"]

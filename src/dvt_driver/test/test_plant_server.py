@@ -18,8 +18,7 @@ import pytest
 import serial
 import yaml
 
-from dvt_driver.link import LinkState, SerialLink
-from dvt_driver.protocol import (
+from dvt_driver.link.protocol import (
     Ack,
     Command,
     Config,
@@ -29,11 +28,14 @@ from dvt_driver.protocol import (
     HelloAck,
     Message,
     Mode,
+    Nack,
+    NackReason,
     Sample,
     SequenceTracker,
     Status,
     encode,
 )
+from dvt_driver.link.serial_link import LinkState, SerialLink
 
 WAIT = 10.0  # s: upper bound of any single wait (tests poll with a deadline)
 
@@ -155,7 +157,7 @@ def test_hello_samples_in_real_time_and_config(plants: Callable[..., Plant]) -> 
     assert c.samples == [], "samples before HELLO"
     c.send(Hello())
     c.pump(WAIT, until=lambda: any(isinstance(m, HelloAck) for m in c.others))
-    assert c.others[0] == HelloAck(1, 1000, 200000, "dvt-plant-sim 0.1")
+    assert c.others[0] == HelloAck(2, 1000, 200000, "dvt-plant-sim 0.1", 4096, 16384)
     cmd = Command(1, Mode.SPEED, 100.0, (0.0, 0.0, 0.0))
     t0 = time.monotonic()
     c.pump(2.0, keepalive=cmd)
@@ -172,6 +174,8 @@ def test_hello_samples_in_real_time_and_config(plants: Callable[..., Plant]) -> 
     assert Ack(FrameType.COMMAND, 1) in c.others
     assert s[-1].status & Status.ENABLED
     assert abs(s[-1].sun_speed - 100.0) < 5.0
+    assert all(x.counts is not None for x in s)  # version 2: every sample carries counts
+    assert s[-1].counts is not None and s[-1].counts[0] > 4096  # the sun turned
     # the thesis's 16 ms serial period, set over the line
     c.send(Config(2, 16000))
     c.pump(WAIT, until=lambda: Ack(FrameType.CONFIG, 2) in c.others)
@@ -327,3 +331,26 @@ def test_an_existing_file_is_never_replaced_by_the_link(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "exists and is not a symlink" in proc.stderr
     assert victim.read_text() == "keep me"
+
+
+def test_plant_serves_version_1_when_asked(plants: Callable[..., Plant]) -> None:
+    """``dvt-plant --protocol-version 1`` is an old controller: HELLO(2) is NACKed, HELLO(1)
+    answered, samples carry no counts (the frames are the 43-byte version-1 SAMPLE)."""
+    plant = plants("--seed", "2", "--protocol-version", "1", "--load", "arm")
+    c = Client(plant.link)
+    c.send(Hello(2))
+    c.pump(WAIT, until=lambda: bool(c.others))
+    assert c.others[0] == Nack(FrameType.HELLO, 0, NackReason.UNSUPPORTED_VERSION)
+    assert c.samples == []
+    c.send(Hello(1))
+    c.pump(WAIT, until=lambda: len(c.samples) > 50)
+    assert HelloAck(1, 1000, 200000, "dvt-plant-sim 0.1") in c.others
+    assert all(x.counts is None for x in c.samples)
+    c.close()
+    plant.stop()
+
+
+def test_plant_refuses_an_unknown_load(tmp_path: Path) -> None:
+    proc = subprocess.run([_plant_script(), "--link", str(tmp_path / "l"), "--load", "piano"],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 2 and "piano" in proc.stderr

@@ -11,10 +11,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dvt_driver.errors import DvtDriverError, ProtocolError
-from dvt_driver.protocol import (
+from dvt_driver.link.protocol import (
+    COUNT_MAX,
+    COUNT_MIN,
     FIRMWARE_ID_MAX_LEN,
     MAX_FRAME_LEN,
     PROTOCOL_VERSION,
+    SAMPLE_V2_WIRE_LEN,
     SAMPLE_WIRE_LEN,
     Ack,
     Command,
@@ -38,6 +41,9 @@ from dvt_driver.protocol import (
     encode,
     max_sample_rate,
     pack_frame,
+    sample_wire_len,
+    unwrap_count,
+    wrap_count,
 )
 
 # ------------------------------------------------------------------------------------------
@@ -46,6 +52,7 @@ from dvt_driver.protocol import (
 f32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
 u16 = st.integers(0, 2**16 - 1)
 u32 = st.integers(0, 2**32 - 1)
+i32 = st.integers(-(2**31), 2**31 - 1)
 f32x3 = st.tuples(f32, f32, f32)
 printable = st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E),
                     max_size=FIRMWARE_ID_MAX_LEN)
@@ -53,9 +60,12 @@ request_type = st.sampled_from([FrameType.HELLO, FrameType.COMMAND, FrameType.CO
 
 messages: st.SearchStrategy[Message] = st.one_of(
     st.builds(Hello, u16),
-    st.builds(HelloAck, u16, u32, u32, printable),
+    st.builds(HelloAck, st.integers(0, 1), u32, u32, printable),
+    st.builds(HelloAck, st.integers(2, 2**16 - 1), u32, u32, printable, u32, u32),
     st.builds(Sample, u32, st.integers(0, 2**64 - 1), f32, f32, f32, f32x3,
               st.integers(0, 0xFF).map(Status)),
+    st.builds(Sample, u32, st.integers(0, 2**64 - 1), f32, f32, f32, f32x3,
+              st.integers(0, 0xFF).map(Status), st.tuples(i32, i32)),
     st.builds(Command, u16, st.sampled_from(list(Mode)), f32, f32x3),
     st.builds(Config, u16, u32),
     st.builds(Ack, request_type, u16),
@@ -168,7 +178,15 @@ def test_float32_rounding_is_the_only_change() -> None:
 # golden vectors: the worked examples of docs/protocol.md, section 8; any change here is a
 # wire-format change and needs a PROTOCOL_VERSION bump
 GOLDEN: list[tuple[Message, str]] = [
-    (Hello(), "03 01 01 03 9D C8 00"),
+    (Hello(1), "03 01 01 03 9D C8 00"),
+    (Hello(2), "03 01 02 03 CE 9D 00"),
+    (HelloAck(2, 1000, 200_000, "dvt-plant 0.2", 4096, 16384),
+     "03 02 02 03 E8 03 01 04 40 0D 03 01 02 10 01 01 02 40 01 11 0D 64 76 74 2D 70 6C 61 6E "
+     "74 20 30 2E 32 ED C9 00"),
+    (Sample(1, 2000, 10.0, -2.5, 1.25, (0.0, 0.5, 0.0), Status.ENABLED | Status.BRAKE2,
+            (4096, -16384)),
+     "03 11 01 01 01 03 D0 07 01 01 01 01 01 01 01 03 20 41 01 03 20 C0 01 03 A0 3F "
+     "01 01 01 01 01 01 02 3F 01 01 01 02 21 01 02 10 01 01 06 C0 FF FF D5 02 00"),
     (HelloAck(1, 1000, 100_000, "dvt-plant 0.1"),
      "03 02 01 03 E8 03 01 04 A0 86 01 11 0D 64 76 74 2D 70 6C 61 6E 74 20 30 2E 31 C3 6A 00"),
     (Sample(1, 2000, 10.0, -2.5, 1.25, (0.0, 0.5, 0.0), Status.ENABLED | Status.BRAKE2),
@@ -190,6 +208,8 @@ def test_golden_vectors(msg: Message, wire: str) -> None:
 
 @pytest.mark.parametrize(("msg", "length"), [
     (Hello(), 7), (HelloAck(1, 1000, 0, "abc"), 19), (sample(5), 43),
+    (HelloAck(2, 1000, 0, "abc", 4096, 16384), 27),
+    (Sample(5, 5000, 1.0, 0.5, 0.0, (0.0, 0.0, 0.0), Status(0), (-1, 2**31 - 1)), 51),
     (Command(1, Mode.OFF, 0.0, (0.0, 0.0, 0.0)), 24), (Config(1, 1000), 11),
     (Ack(FrameType.CONFIG, 1), 8), (Nack(FrameType.CONFIG, 1, NackReason.NOT_READY), 9),
 ])
@@ -576,3 +596,65 @@ def test_sequence_tracker_duplicates_and_forget() -> None:
     tr.forget()
     assert tr.update(100, 9_000) == SequenceUpdate()
     assert (tr.duplicates, tr.resets, tr.lost) == (1, 1, 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# version 2: encoder counts
+
+
+def test_version_constants() -> None:
+    assert PROTOCOL_VERSION == 2
+    assert Hello().protocol_version == 2
+    assert SAMPLE_V2_WIRE_LEN == 51
+    assert sample_wire_len(1) == 43 and sample_wire_len(2) == 51
+    # 1 kHz of SAMPLE_V2 plus an ACK per sample still fits a 921600 baud line (64 %)
+    assert max_sample_rate(921600, protocol_version=2) == pytest.approx(921600 / 510)
+    assert 1000 * (51 + 8) / 92160 < 0.65
+    with pytest.raises(ProtocolError, match="protocol_version"):
+        sample_wire_len(3)
+
+
+def test_sample_v2_round_trip_keeps_counts() -> None:
+    msg = Sample(9, 9000, 1.0, -0.5, 0.25, (0.0, 0.0, 1.0), Status.BRAKE3,
+                 (-(2**31), 2**31 - 1))
+    frame = encode(msg)
+    assert frame[1] == FrameType.SAMPLE_V2
+    assert decode_frame(frame) == msg
+    assert decode_frame(encode(sample(3))).counts is None  # version 1 layout unchanged
+
+
+def test_hello_ack_v2_counts_per_rev_round_trip_and_v1_refuses_them() -> None:
+    ack = HelloAck(2, 1000, 0, "x", 4096, 16384)
+    assert decode_frame(encode(ack)) == ack
+    with pytest.raises(ProtocolError, match="sun_counts_per_rev|version >= 2"):
+        encode(HelloAck(1, 1000, 0, "x", 4096, 0))
+    # a future version keeps the version-2 head
+    assert decode_frame(encode(HelloAck(3, 1000, 0, "", 1, 2))) == HelloAck(3, 1000, 0, "", 1, 2)
+
+
+@pytest.mark.parametrize("counts", [(2**31, 0), (0, -(2**31) - 1), (1.5, 0), (True, 0), (1,),
+                                    (1, 2, 3), "ab", 7])
+def test_sample_counts_refused_when_not_i32(counts: object) -> None:
+    with pytest.raises(ProtocolError, match="Sample.counts"):
+        encode(Sample(1, 1, 0.0, 0.0, 0.0, (0.0, 0.0, 0.0), Status(0), counts))  # type: ignore[arg-type]
+
+
+def test_sample_v2_wrong_lengths_are_malformed() -> None:
+    payload = bytes(encode(Sample(1, 1, 0.0, 0.0, 0.0, (0.0, 0.0, 0.0), Status(0), (1, 2))))
+    body = cobs_decode(payload[:-1])[:-2]
+    assert reason_of(pack_frame(body[:-1])) == "length"
+    assert reason_of(pack_frame(body + b"\x01")) == "length"
+    # a version-1 body under the version-2 type and vice versa
+    v1 = cobs_decode(encode(sample(1))[:-1])[:-2]
+    assert reason_of(pack_frame(bytes([FrameType.SAMPLE_V2]) + v1[1:])) == "length"
+    assert reason_of(pack_frame(bytes([FrameType.SAMPLE]) + body[1:])) == "length"
+    # a version-2 HELLO_ACK cut inside its head
+    ack = cobs_decode(encode(HelloAck(2, 1000, 0, "", 1, 1))[:-1])[:-2]
+    assert reason_of(pack_frame(ack[:12])) == "length"
+
+
+@given(st.integers(-(2**40), 2**40), st.integers(-(2**31) + 1, 2**31 - 1))
+def test_unwrap_count_follows_any_step_below_2_pow_31(start: int, step: int) -> None:
+    raw0 = wrap_count(start)
+    assert COUNT_MIN <= raw0 <= COUNT_MAX
+    assert unwrap_count(start, wrap_count(start + step)) == start + step

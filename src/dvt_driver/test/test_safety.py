@@ -1,5 +1,5 @@
-"""Safety core: refusal (never clamp) policy, watchdog with injected time, trips, gear shifts,
-driver settings validation. Pure: no ROS, no I/O, no sleeping."""
+"""Safety core: refusal (never clamp) policy, watchdog with injected time, trips, gear shifts.
+Pure: no ROS, no I/O, no sleeping."""
 
 from __future__ import annotations
 
@@ -10,20 +10,18 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dvt_driver.safety import (
+from dvt_driver.errors import CommandRefusedError, SafetyConfigError
+from dvt_driver.link.safety import (
     HARDWARE_MAX_BRAKE_CURRENT,
     HARDWARE_MAX_MOTOR_CURRENT,
     HARDWARE_MAX_SUN_SPEED,
-    CommandRefusedError,
     Limits,
     MotorMode,
-    SafetyConfigError,
     ShiftSettings,
     Supervisor,
     check_brake_currents,
     check_motor_current,
     check_sun_speed,
-    parse_settings,
     plan_shift,
 )
 
@@ -315,31 +313,3 @@ def test_engage_current_must_fit_the_brake_limit() -> None:
         ShiftSettings(ramp_time=-0.1)
     with pytest.raises(SafetyConfigError, match="watchdog_timeout"):
         Supervisor(Limits(), 0.0)
-
-
-# -- driver settings -----------------------------------------------------------------------------
-
-def test_parse_settings_defaults_and_errors() -> None:
-    s = parse_settings({"port": "/dev/ttyUSB0"})
-    assert s.baud == 921600 and s.sample_period_us == 1000
-    assert s.watchdog_timeout == 0.5 and s.shift.engage_current == 0.5
-    assert parse_settings({"port": "/dev/x", "sample_rate_hz": 2000}).sample_period_us == 500
-    cases: list[tuple[dict[str, Any], str]] = [
-        ({}, "port"),
-        ({"port": "  "}, "port"),
-        ({"port": "/dev/x", "baud": 12345}, "baud"),
-        ({"port": "/dev/x", "baud": "fast"}, "baud"),
-        ({"port": "/dev/x", "sample_rate_hz": 0}, "sample_rate_hz"),
-        ({"port": "/dev/x", "sample_rate_hz": 2500}, "sample_rate_hz"),
-        ({"port": "/dev/x", "baud": 115200}, "more than 115200 baud carries"),
-        ({"port": "/dev/x", "max_motor_current": 50.0}, "max_motor_current"),
-        ({"port": "/dev/x", "max_brake_current": -1.0}, "max_brake_current"),
-        ({"port": "/dev/x", "watchdog_timeout": 0.0}, "watchdog_timeout"),
-        ({"port": "/dev/x", "watchdog_timeout": 0.01}, "two keep-alive periods"),
-        ({"port": "/dev/x", "max_brake_current": 0.3}, "gear_engage_current"),
-        ({"port": "/dev/x", "release_brakes_on_deactivate": "yes"}, "release_brakes"),
-        ({"port": "/dev/x", "bogus": 1}, "unknown setting"),
-    ]
-    for values, match in cases:
-        with pytest.raises(SafetyConfigError, match=match):
-            parse_settings(values)

@@ -3,6 +3,10 @@
     dvt-bench model    --rate 1000 --seconds 10 --json   (model node fed at 1 kHz)
     dvt-bench link     --rate 1000 --seconds 30 --json   (plant -> driver -> recorder)
     dvt-bench identify [--monte-carlo N] --json          (identifier speed / statistics)
+
+Each target is a module with ``main(argv) -> int``, imported by name when asked for: ``link``
+is the driver package's benchmark (it needs the plant), which this package does not depend
+on; without ``dvt_driver`` installed that target alone is unavailable.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ import sys
 
 _TARGETS = {
     "model": "dvt_model.bench",
-    "link": "dvt_driver.bench",
+    "link": "dvt_driver.run.bench",
     "identify": "dvt_identify.bench_identify",
 }
 
@@ -23,7 +27,12 @@ def main(argv: list[str] | None = None) -> int:
         print(__doc__, file=sys.stderr)
         print(f"dvt-bench: expected one of {sorted(_TARGETS)}", file=sys.stderr)
         return 2
-    module = importlib.import_module(_TARGETS[args[0]])
+    name = _TARGETS[args[0]]
+    try:
+        module = importlib.import_module(name)
+    except ModuleNotFoundError as exc:
+        print(f"dvt-bench: error: {args[0]}: {name} is not installed ({exc})", file=sys.stderr)
+        return 2
     return int(module.main(args[1:]))
 
 

@@ -1,30 +1,32 @@
 """``dvt-bench identify``: how fast the identifier is, and how good its statistics are.
 
-A benchmark, not a test: it prints what it measured, met targets or not.
+A benchmark, not a test: it prints what it measured, met targets or not. It needs only
+``dvt_model`` (the recordings and the identifier's own simulation), not the plant.
 
 Timing mode (default)::
 
-    dvt-bench identify [--seconds 60] [--rate 1000] [--scaling 15,30] [--json]
-                       [--fit-decimate Q] [--starts K] [--max-tries T] [--no-loop] [--keep DIR]
+    dvt-bench identify [--estimation BAG...] [--validation BAG...] [--seconds S]
+                       [--scaling 15,30] [--json] [--fit-decimate Q] [--starts K]
+                       [--max-tries T] [--no-loop] [--keep DIR]
 
-Simulates an identification run of the DVT offline (no ROS, no real time) with
-:func:`dvt_driver.offline.run_offline`: the ``ident`` experiment schedule
-(:mod:`dvt_driver.experiment_core`, phases stretched to ``--seconds``) goes through the driver's
-supervisor (gear shifts, keep-alive) into the simulated controller and transmission
-(:class:`dvt_driver.plant_core.PlantSim`, hidden preset ``none``: the ``physical`` parameter set
-with the bench sensors), one sample at a time.
-The measured speeds and currents are written with :func:`dvt_model.bagio.write_run` (a second
-run with the next seed is the validation bag). Then :func:`dvt_identify.cli.run` runs with
-``augment=False`` and with the augment loop, on the bundled ``dvt`` description.
+Identifies from recordings: by default the committed runs of the repository's ``bags/``
+(:data:`DEFAULT_ESTIMATION` for estimation, :data:`DEFAULT_VALIDATION` for validation: the
+``ident`` experiment on the simulated plant with no hidden effect, recorded through the real
+driver chain; ``scripts/make_bags.sh`` re-creates them), else the bags given. ``--seconds S``
+uses the first ``S`` seconds of each recording (copies written with
+:func:`dvt_model.recording.write_run` into a temporary directory). Then
+:func:`dvt_identify.pipeline.run` runs with ``augment=False`` and with the augment loop, on the
+bundled ``dvt`` description.
 ``baseline_seconds`` and ``loop_seconds`` are the identification itself
 (:func:`dvt_identify.loop.identify` on the loaded recordings: checks, decimation, the fit with
 its start guard, figures and residual analysis on estimation and validation data, and for the
 loop the scoring, refits and decisions), as a fit time is usually quoted;
 ``*_end_to_end_seconds`` add reading both bags and writing the report with its plots. The
 breakdown (loading the compiled kernels, bag reading, report writing, baseline fit alone) is
-measured separately. ``scaling`` repeats the baseline on shorter runs of the same experiment
-(all its phases, proportionally shorter; a prefix would drop the gear phases and with them the
-band-brake model) and fits ``seconds ~ samples^exponent``.
+measured separately. ``scaling`` repeats the baseline on shorter prefixes of the same
+recordings (``--scaling`` lengths in seconds; a prefix may leave out the gear phases and with
+them the band-brake model, which the pipeline then drops) and fits
+``seconds ~ samples^exponent``.
 
 Monte Carlo mode::
 
@@ -37,7 +39,7 @@ effects) at its initial (``thesis``) values, from rest, with a PRBS on every inp
 (the motor current, +-2.5 A, clock 30 ms), plus white Gaussian output noise of known standard
 deviation ``sigma_j = noise * std(y_j, noise-free)`` (equal signal-to-noise ratio on every output,
 so the fit's default weighting ``1/std(y_j)`` is the maximum-likelihood one). Each record gets
-its own noise realisation (input fixed) and is fitted with :class:`dvt_identify.oe.OEFit` (no
+its own noise realisation (input fixed) and is fitted with :class:`dvt_identify.fit.OEFit` (no
 augmentation). Per parameter: ``true``, ``mean``, ``std`` (over the runs), ``crlb_std`` (the
 Cramér-Rao bound at the true values from the Fisher information ``J^T J`` with ``J`` the
 central-difference sensitivity of the noise-free output to the parameters and the initial
@@ -73,15 +75,14 @@ from typing import Any
 import numpy as np
 import yaml
 from numpy.typing import NDArray
+from scipy.signal import max_len_seq
 
-from dvt_driver import experiment_core as ec
-from dvt_driver.errors import DvtDriverError
-from dvt_driver.experiment_core import Experiment
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import Description, load_description
-from dvt_identify.errors import DvtIdentifyError, FitError
-from dvt_identify.oe import OEFit, OEModel
+from dvt_identify.errors import BenchError, DvtIdentifyError, FitError
+from dvt_identify.fit import OEFit
 from dvt_identify.simloop import warm_up
+from dvt_identify.simulation import OEModel
 from dvt_model.errors import DvtModelError
 
 Array = NDArray[np.float64]
@@ -91,19 +92,12 @@ TARGET_LOOP_SECONDS = 30.0
 TARGET_CRLB_RATIO = 1.2
 TARGET_COVERAGE = (0.93, 0.97)
 
-# The ``ident`` experiment's phase lengths [s] for a 60 s run (the stop phase is 1.5 s more).
-IDENT_60S: dict[str, float] = {"neutral_prbs": 12.0, "neutral_multisine": 10.0,
-                               "steps_dwell": 2.0, "shift": 0.8, "excite": 7.4}
-_IDENT_STOP = 1.5
-_IDENT_STRETCH = (IDENT_60S["neutral_prbs"] + IDENT_60S["neutral_multisine"]
-                  + 6 * IDENT_60S["steps_dwell"] + 3 * (IDENT_60S["shift"] + IDENT_60S["excite"]))
-_EPOCH_NS = 1_700_000_000 * 1_000_000_000  # stamps of the simulated runs start here
+DEFAULT_ESTIMATION = "ident-none-1"
+"""The committed recording used for estimation by default (in the repository's ``bags/``)."""
+DEFAULT_VALIDATION = "ident-none-2"
+"""The committed recording used for validation by default."""
 
 Log = Callable[[str], None]
-
-
-class BenchError(DvtIdentifyError, ValueError):
-    """A benchmark setting is unusable (the message names the option and value)."""
 
 
 BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -130,55 +124,67 @@ def _load() -> list[float]:
 
 
 # ---------------------------------------------------------------------------------------------
-# Simulated recordings
+# Recordings
 
 
-def ident_experiment(seconds: float, seed: int) -> Experiment:
-    """The ``ident`` experiment with every phase stretched so that it lasts ``seconds`` [s].
+def default_bag(name: str, option: str) -> Path:
+    """The committed recording ``bags/<name>``: looked up in the working directory and its
+    parents, then beside this package's source tree.
 
     Raises:
-        BenchError: ``seconds`` too short for the stop phase.
+        BenchError: not found (naming ``option``, which gives the bag explicitly).
     """
-    factor = (seconds - _IDENT_STOP) / _IDENT_STRETCH
-    if not factor > 0:
-        raise BenchError(f"--seconds: expected more than {_IDENT_STOP} s, got {seconds}")
-    settings = {k: round(v * factor, 6) for k, v in IDENT_60S.items()}
-    return ec.build("ident", seed=seed, **settings)
+    here = Path(__file__).resolve()
+    for root in (Path.cwd(), *Path.cwd().parents, *here.parents):
+        cand = root / "bags" / name
+        if (cand / "metadata.yaml").is_file():
+            return cand
+    raise BenchError(f"{option}: no default recording bags/{name} found from {Path.cwd()} "
+                     "(give the bag directories explicitly)")
 
 
-def simulate_run(path: Path, seconds: float, rate_hz: float, seed: int, hidden: str = "none",
-                 params: str = "physical") -> dict[str, Any]:
-    """Simulate the stretched ``ident`` run offline and write it as a bag.
-
-    :func:`dvt_driver.offline.run_offline`: the schedule goes through the driver's
-    :class:`~dvt_driver.safety.Supervisor` (gear shifts become brake ramps, the runner's
-    keep-alive refreshes the motor command) into :class:`~dvt_driver.plant_core.PlantSim`
-    (sensor noise seeded with ``seed``) at ``rate_hz``; the bag holds the measured speeds
-    [rad/s] and currents [A] as the recorder would write them, plus ``truth.yaml``.
+def prefix_copy(src: Path, dst: Path, seconds: float | None) -> dict[str, Any]:
+    """``src`` itself, or its first ``seconds`` [s] written to ``dst`` (the two sample topics
+    only, :func:`dvt_model.recording.write_run`).
 
     Returns:
-        ``{"path", "samples", "experiment", "simulate_seconds", "write_seconds", "trips",
-        "nacks", "gear_samples"}``.
-    """
-    from dvt_driver.hidden import load_hidden
-    from dvt_driver.offline import run_offline
-    from dvt_model.bagio import write_run
-    from dvt_model.params import load_parameters
+        ``{"path", "source", "samples", "seconds", "rate_hz", "write_seconds"}``.
 
+    Raises:
+        BenchError: ``seconds`` leaves fewer than 2 samples.
+    """
+    from dvt_model.recording import read_run, read_truth, write_run
+
+    run = read_run(src)
+    n_all = int(run.t.size)
+    rate = (n_all - 1) / float(run.t[-1] - run.t[0]) if n_all > 1 else math.nan
+    if seconds is None:
+        return {"path": str(src), "source": str(src), "samples": n_all,
+                "seconds": float(run.t[-1] - run.t[0]) if n_all else 0.0, "rate_hz": rate,
+                "write_seconds": 0.0}
+    n = int(np.searchsorted(run.t - run.t[0], seconds, side="right"))
+    if n < 2:
+        raise BenchError(f"--seconds: {seconds} s leaves {n} sample(s) of {src}")
     t0 = time.perf_counter()
-    exp = replace(ident_experiment(seconds, seed), sample_period_us=round(1e6 / rate_hz))
-    run = run_offline(exp, load_parameters(params), load_hidden(hidden), seed=seed)
-    t_sim = time.perf_counter() - t0
-    truth = yaml.safe_load(run.truth) or {}
-    truth["experiment"] = exp.to_mapping()
-    truth["made_by"] = "dvt-bench identify (dvt_driver.offline.run_offline)"
-    t1 = time.perf_counter()
-    stamps = _EPOCH_NS + np.round(run.t * 1e9).astype(np.int64)
-    write_run(path, stamps, run.speeds, run.currents, truth=truth)
-    return {"path": str(path), "samples": int(run.t.size), "experiment": exp.to_mapping(),
-            "simulate_seconds": t_sim, "write_seconds": time.perf_counter() - t1,
-            "trips": len(run.trips), "nacks": run.nacks,
-            "gear_samples": {str(g): int(np.sum(run.gear == g)) for g in np.unique(run.gear)}}
+    write_run(dst, run.stamps_ns[:n], run.speeds[:n], run.currents[:n], truth=read_truth(src))
+    return {"path": str(dst), "source": str(src), "samples": n,
+            "seconds": float(run.t[n - 1] - run.t[0]), "rate_hz": rate,
+            "write_seconds": time.perf_counter() - t0}
+
+
+def _recording_info(path: Path) -> dict[str, Any]:
+    """What ``run.yaml`` beside a committed recording says about how it was made (experiment,
+    parameter set, hidden preset), or ``{}``."""
+    try:
+        data = yaml.safe_load((Path(path) / "run.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    exp = data.get("experiment")
+    return {k: v for k, v in (("experiment", exp.get("name") if isinstance(exp, dict) else exp),
+                              ("params", data.get("params")), ("hidden", data.get("hidden")))
+            if v is not None}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -220,59 +226,78 @@ def _fit_percent(fig: Any) -> dict[str, float]:
     return {n: float(v) for n, v in zip(fig.output_names, fig.fit_percent, strict=True)}
 
 
-def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str = "dvt",
-               fit_decimate: int | None = None, starts: int | None = None,
-               max_tries: int | None = None, scaling: Sequence[float] = (15.0, 30.0),
-               loop: bool = True, seed: int = 0, keep: Path | None = None,
-               log: Log = _quiet, verbose: bool = False) -> dict[str, Any]:
+def run_timing(estimation: Sequence[str | Path] | None = None,
+               validation: Sequence[str | Path] | None = None, seconds: float | None = None,
+               description: str = "dvt", fit_decimate: int | None = None,
+               starts: int | None = None, max_tries: int | None = None,
+               scaling: Sequence[float] = (15.0, 30.0), loop: bool = True,
+               keep: Path | None = None, log: Log = _quiet, verbose: bool = False
+               ) -> dict[str, Any]:
     """Timing mode (module docstring); returns the figures.
 
     Args:
-        seconds: length of the estimation (and validation) run [s].
-        rate_hz: sample rate [Hz].
+        estimation, validation: bag directories (``None``: the committed
+            :data:`DEFAULT_ESTIMATION` / :data:`DEFAULT_VALIDATION`).
+        seconds: use the first ``seconds`` [s] of each recording (``None``: all of it).
         description: description name or file.
-        fit_decimate, starts: overrides passed to :func:`dvt_identify.cli.run` (``None``: the
-            description's).
+        fit_decimate, starts: overrides passed to :func:`dvt_identify.pipeline.run` (``None``:
+            the description's).
         max_tries: override of ``fit.max_tries_per_round`` (``None``: the description's).
-        scaling: further run lengths [s] timed with the baseline only (shorter than ``seconds``).
+        scaling: further lengths [s] timed with the baseline only (shorter than the used
+            length of the recordings).
         loop: also time the augment loop.
-        seed: experiment and sensor-noise seed of the estimation run (validation: ``seed + 1``).
-        keep: copy bags and reports to this new directory.
+        keep: copy bags (when cut) and reports to this new directory.
         log: progress lines.
-        verbose: let :func:`dvt_identify.cli.run` print its progress on stderr.
+        verbose: let :func:`dvt_identify.pipeline.run` print its progress on stderr.
+
+    Raises:
+        BenchError: a bad setting or a missing default recording.
     """
-    from dvt_identify.cli import load_segments, run
+    from dvt_identify.pipeline import load_segments, run
     from dvt_identify.report import write_report
 
+    if seconds is not None and not seconds > 0:
+        raise BenchError(f"--seconds: expected > 0, got {seconds}")
+    est_src = [Path(b) for b in estimation] if estimation else [
+        default_bag(DEFAULT_ESTIMATION, "--estimation")]
+    val_src = [Path(b) for b in validation] if validation else [
+        default_bag(DEFAULT_VALIDATION, "--validation")]
+    for b in (*est_src, *val_src):
+        if not Path(b).is_dir():
+            raise BenchError(f"--estimation/--validation: {b}: no such bag directory")
     load_before = _load()
     work = Path(tempfile.mkdtemp(prefix="dvt-bench-identify-"))
     try:
         desc_spec = description_with(description, work, max_tries)
         desc = load_description(desc_spec)
 
-        def pair(secs: float) -> tuple[dict[str, Any], dict[str, Any]]:
-            tag = f"{secs:g}s"
-            log(f"simulating {secs:g} s estimation and validation runs at {rate_hz:g} Hz")
-            est = simulate_run(work / f"est-{tag}", secs, rate_hz, seed)
-            val = simulate_run(work / f"val-{tag}", secs, rate_hz, seed + 1)
+        def pair(secs: float | None) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+            tag = "all" if secs is None else f"{secs:g}s"
+            log(f"recordings: {tag} of {[str(b) for b in est_src]} (estimation) and "
+                f"{[str(b) for b in val_src]} (validation)")
+            est = [prefix_copy(b, work / f"est-{i}-{tag}", secs) for i, b in enumerate(est_src)]
+            val = [prefix_copy(b, work / f"val-{i}-{tag}", secs) for i, b in enumerate(val_src)]
             return est, val
 
-        def identify(est: dict[str, Any], val: dict[str, Any], augment: bool, out: str,
-                     plots: bool = True) -> tuple[Any, float, float]:
-            return _timed(lambda: run([est["path"]], [val["path"]], work / out, desc_spec,
-                                      augment=augment, starts=starts, fit_decimate=fit_decimate,
-                                      quiet=not verbose, plots=plots))
+        def identify(est: list[dict[str, Any]], val: list[dict[str, Any]], augment: bool,
+                     out: str, plots: bool = True) -> tuple[Any, float, float]:
+            return _timed(lambda: run([e["path"] for e in est], [v["path"] for v in val],
+                                      work / out, desc_spec, augment=augment, starts=starts,
+                                      fit_decimate=fit_decimate, quiet=not verbose,
+                                      plots=plots))
 
         est, val = pair(seconds)
-        n = int(est["samples"])
+        n = sum(int(e["samples"]) for e in est)
+        used = min(float(e["seconds"]) for e in est)
         log("timing: loading the compiled simulation kernels")
         _, jit_s, _ = _timed(warm_up)
         log("timing: reading both bags")
-        _, read_s, read_cpu = _timed(lambda: load_segments([est["path"], val["path"]], desc))
-        log("timing: baseline (cli.run, augment=False)")
+        _, read_s, read_cpu = _timed(lambda: load_segments(
+            [e["path"] for e in est] + [v["path"] for v in val], desc))
+        log("timing: baseline (pipeline.run, augment=False)")
         base, base_s, base_cpu = identify(est, val, False, "report-baseline")
         log(f"baseline: {base_s:.2f} s")
-        log("timing: baseline without plots (cli.run, augment=False, plots=False)")
+        log("timing: baseline without plots (pipeline.run, augment=False, plots=False)")
         _, base_np_s, _ = identify(est, val, False, "report-baseline-no-plots", plots=False)
         log("timing: report writing alone")
         _, report_s, _ = _timed(lambda: write_report(base, work / "report-again"))
@@ -293,8 +318,8 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
                                     "with its start guard, figures and residual analysis on "
                                     "estimation and validation data",
                 "loop_seconds": "the same with the augment loop (scoring, refits, decisions)",
-                "*_end_to_end_seconds": "dvt_identify.cli.run: read both bags, identify, write "
-                                        "report.json, report.md and the plots",
+                "*_end_to_end_seconds": "dvt_identify.pipeline.run: read both bags, identify, "
+                                        "write report.json, report.md and the plots",
                 "baseline_end_to_end_no_plots_seconds": "the same without the PNG plots "
                                                         "(dvt-identify --no-plots)"},
             "settings": {"description": desc.name, "fit_decimate": cfg.fit_decimate,
@@ -303,16 +328,13 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
                          "max_tries_per_round": cfg.max_tries_per_round,
                          "max_effects": cfg.max_effects, "alpha": cfg.alpha,
                          "min_validation_gain": cfg.min_validation_gain},
-            "recording": {"seconds": seconds, "rate_hz": rate_hz, "samples": n,
-                          "experiment": "ident (phases stretched)",
-                          "experiment_settings": est["experiment"]["settings"],
-                          "plant": "PlantSim, params physical, hidden none",
-                          "seeds": {"estimation": seed, "validation": seed + 1},
-                          "simulate_seconds": est["simulate_seconds"] + val["simulate_seconds"],
-                          "write_seconds": est["write_seconds"] + val["write_seconds"],
-                          "trips": est["trips"] + val["trips"],
-                          "nacks": est["nacks"] + val["nacks"],
-                          "gear_samples": est["gear_samples"]},
+            "recording": {"seconds": used, "rate_hz": est[0]["rate_hz"], "samples": n,
+                          "estimation": [e["source"] for e in est],
+                          "validation": [v["source"] for v in val],
+                          "cut_to_seconds": seconds,
+                          "made_by": _recording_info(est_src[0]),
+                          "write_seconds": sum(e["write_seconds"] for e in est + val),
+                          "validation_samples": sum(int(v["samples"]) for v in val)},
             "breakdown": {"jit_load_seconds": jit_s,
                           "read_both_bags_seconds": read_s, "read_cpu_seconds": read_cpu,
                           "baseline_end_to_end_cpu_seconds": base_cpu,
@@ -326,7 +348,7 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
                     "baseline_model_effects": [e.label() for e in base.baseline.effects]},
         }
         if loop:
-            log("timing: augment loop (cli.run, augment=True)")
+            log("timing: augment loop (pipeline.run, augment=True)")
             res, loop_s, loop_cpu = identify(est, val, True, "report-loop")
             log(f"loop: {loop_s:.2f} s")
             out["loop_seconds"] = res.seconds
@@ -340,16 +362,16 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
                 "decisions": [{"candidate": d.score.label, "accepted": d.accepted,
                                "reason": d.reason} for d in res.decisions]})
         points = []
-        for secs in sorted({float(s) for s in scaling if 0 < float(s) < seconds}):
+        for secs in sorted({float(s) for s in scaling if 0 < float(s) < used}):
             e2, v2 = pair(secs)
             log(f"timing: baseline on {secs:g} s")
             r2, s2, c2 = identify(e2, v2, False, f"report-baseline-{secs:g}s")
-            points.append({"seconds": secs, "samples": int(e2["samples"]),
+            points.append({"seconds": secs, "samples": sum(int(e["samples"]) for e in e2),
                            "baseline_seconds": r2.seconds, "end_to_end_seconds": s2,
                            "end_to_end_cpu_seconds": c2,
                            "fit_seconds": r2.baseline.fit.seconds_,
                            "fit_nfev": sum(s.nfev for s in r2.baseline.fit.starts_)})
-        points.append({"seconds": seconds, "samples": n, "baseline_seconds": base.seconds,
+        points.append({"seconds": used, "samples": n, "baseline_seconds": base.seconds,
                        "end_to_end_seconds": base_s, "end_to_end_cpu_seconds": base_cpu,
                        "fit_seconds": base.baseline.fit.seconds_,
                        "fit_nfev": sum(s.nfev for s in base.baseline.fit.starts_)})
@@ -359,9 +381,9 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
         out["scaling_exponent_end_to_end"] = power_law_exponent(
             ns, [p["end_to_end_seconds"] for p in points])
         out["scaling_exponent_fit"] = power_law_exponent(ns, [p["fit_seconds"] for p in points])
-        out["scaling_note"] = ("each point is a separate run of the same experiment with its "
-                               "phases shortened in proportion; exponent = slope of log time "
-                               "over log samples (1 = linear)")
+        out["scaling_note"] = ("each point is a prefix of the same recordings; exponent = slope "
+                               "of log time over log samples (1 = linear); a short prefix may "
+                               "leave out the gear phases and with them the band model")
         out["meets_targets"] = {
             "baseline_seconds": out["baseline_seconds"] <= TARGET_BASELINE_SECONDS,
             "loop_seconds": (None if out["loop_seconds"] is None
@@ -385,6 +407,23 @@ def run_timing(seconds: float = 60.0, rate_hz: float = 1000.0, description: str 
 # Monte Carlo mode
 
 
+def prbs(n_bits: int, order: int, seed: int, stream: int = 0) -> Array:
+    """``n_bits`` values of a maximum-length binary sequence in {-1, +1} (period
+    ``2**order - 1``); ``seed`` and ``stream`` choose its starting state (the generator of the
+    driver's experiments, so the same seeds give the same sequence).
+
+    Raises:
+        BenchError: ``order`` outside 3..24.
+    """
+    if not 3 <= order <= 24:
+        raise BenchError(f"PRBS order: expected 3..24, got {order}")
+    state = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(stream)]).integers(0, 2, order)
+    if not state.any():
+        state[0] = 1
+    seq, _ = max_len_seq(order, state=state, length=n_bits)
+    return np.asarray(seq, dtype=np.float64) * 2.0 - 1.0
+
+
 def mc_input(desc: Description, seconds: float, rate_hz: float, amplitude: float = 2.5,
              clock: float = 0.03, seed: int = 0) -> Segment:
     """A segment (outputs zero) with a PRBS of +-``amplitude`` (clock ``clock`` [s]) on every
@@ -394,8 +433,6 @@ def mc_input(desc: Description, seconds: float, rate_hz: float, amplitude: float
     Raises:
         BenchError: the structure uses no input, or the record is too short.
     """
-    from dvt_driver.experiment_core import prbs_signal
-
     n = round(seconds * rate_hz)
     if n < 50:
         raise BenchError(f"--mc-seconds/--mc-rate: {n} samples are too few (need >= 50)")
@@ -409,7 +446,7 @@ def mc_input(desc: Description, seconds: float, rate_hz: float, amplitude: float
     u = np.zeros((n, len(desc.input_names)))
     for j, name in enumerate(desc.input_names):
         if name in used:
-            u[:, j] = amplitude * prbs_signal(int(idx[-1]) + 1, 8, seed, 100 + j)[idx]
+            u[:, j] = amplitude * prbs(int(idx[-1]) + 1, 8, seed, 100 + j)[idx]
     return make_segment("monte-carlo", t, u, np.zeros((n, len(desc.output_names))),
                         desc.input_names, desc.output_names)
 
@@ -635,8 +672,11 @@ def pretty(res: dict[str, Any]) -> str:
                      f"mean, wall {res['wall_seconds']:.1f} s with {res['workers']} worker(s)")
         return "\n".join(lines)
     st = res["settings"]
-    lines.append(f"recording: {res['samples']} samples ({res['recording']['seconds']:g} s at "
-                 f"{res['recording']['rate_hz']:g} Hz), description {st['description']}, "
+    rec = res["recording"]
+    lines.append(f"recording: {', '.join(rec['estimation'])} (estimation), "
+                 f"{', '.join(rec['validation'])} (validation)")
+    lines.append(f"  {res['samples']} samples ({rec['seconds']:g} s at "
+                 f"{rec['rate_hz']:g} Hz), description {st['description']}, "
                  f"fit_decimate {st['fit_decimate']}, starts {st['starts']}, "
                  f"max_tries_per_round {st['max_tries_per_round']}")
     lines.append(f"baseline_seconds {_num(res['baseline_seconds'], '.2f')} (target <= "
@@ -679,21 +719,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                                             "(--monte-carlo); prints what it measured")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--description", default="dvt", help="description name or file (dvt)")
-    p.add_argument("--seed", type=int, default=0, help="seed of runs / Monte Carlo (0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the Monte Carlo (0)")
     p.add_argument("--verbose", action="store_true", help="progress of every step on stderr")
     g = p.add_argument_group("timing mode")
-    g.add_argument("--seconds", type=float, default=60.0, help="recording length [s] (60)")
-    g.add_argument("--rate", type=float, default=1000.0, help="sample rate [Hz] (1000)")
+    g.add_argument("--estimation", nargs="+", default=None, metavar="BAG",
+                   help=f"estimation bag directories (default bags/{DEFAULT_ESTIMATION})")
+    g.add_argument("--validation", nargs="+", default=None, metavar="BAG",
+                   help=f"validation bag directories (default bags/{DEFAULT_VALIDATION})")
+    g.add_argument("--seconds", type=float, default=None,
+                   help="use the first SECONDS [s] of each recording (default: all)")
     g.add_argument("--scaling", type=_seconds_list, default=[15.0, 30.0],
-                   help="shorter run lengths [s] for the scaling figure, e.g. 15,30 "
-                        "(none: skip)")
+                   help="shorter prefixes [s] for the scaling figure, e.g. 15,30 (none: skip)")
     g.add_argument("--fit-decimate", type=int, default=None,
                    help="override the description's fit_decimate")
     g.add_argument("--starts", type=int, default=None, help="override the baseline starts")
     g.add_argument("--max-tries", type=int, default=None,
                    help="override the description's fit.max_tries_per_round")
     g.add_argument("--no-loop", action="store_true", help="skip the augment loop")
-    g.add_argument("--keep", default=None, help="copy bags and reports to this new directory")
+    g.add_argument("--keep", default=None,
+                   help="copy the cut bags and the reports to this new directory")
     m = p.add_argument_group("Monte Carlo mode")
     m.add_argument("--monte-carlo", type=int, nargs="?", const=50, default=None, metavar="N",
                    help="run N simulated fits (default N 50)")
@@ -706,8 +750,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(list(sys.argv[1:] if argv is None else argv))
     if args.seed < 0:
         p.error(f"--seed: expected >= 0, got {args.seed}")
-    if not 1.0 <= args.rate <= 2000.0:
-        p.error(f"--rate: expected 1..2000 Hz, got {args.rate}")
     if args.keep is not None and Path(args.keep).exists():
         p.error(f"--keep: {args.keep} already exists")
     for opt in ("fit_decimate", "starts", "max_tries"):
@@ -722,11 +764,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             res = run_monte_carlo(args.monte_carlo, args.mc_seconds, args.mc_rate, args.noise,
                                   args.workers, args.seed, args.description, args.starts, log)
         else:
-            res = run_timing(args.seconds, args.rate, args.description, args.fit_decimate,
-                             args.starts, args.max_tries, args.scaling, not args.no_loop,
-                             args.seed, Path(args.keep) if args.keep else None, log,
+            res = run_timing(args.estimation, args.validation, args.seconds, args.description,
+                             args.fit_decimate, args.starts, args.max_tries, args.scaling,
+                             not args.no_loop, Path(args.keep) if args.keep else None, log,
                              args.verbose)
-    except (DvtIdentifyError, DvtDriverError, DvtModelError, OSError) as exc:
+    except (DvtIdentifyError, DvtModelError, OSError) as exc:
         print(f"dvt-bench identify: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     res = _finite(res)

@@ -6,12 +6,16 @@ A recording is a rosbag2 directory (MCAP, CDR, ROS 2 Jazzy definitions). The ide
 and turns each bag into a :class:`Segment` on a uniform time grid. Topics not named are ignored.
 
 Checks (each refusal names bag, topic and problem, see :class:`~dvt_identify.errors.DataError`):
-stamps strictly increasing, no NaN/inf, at least ``min_samples`` aligned samples, no saturation
-against limits the description gives, some excitation. Gaps of up to ``max_gap_samples`` missing
-samples are filled by linear interpolation (and counted); a longer gap splits the recording into
-segments ``<bag>#1``, ``<bag>#2``, ... (each fitted with its own initial state); a piece shorter
-than ``min_samples`` is dropped with a :class:`DataWarning` (bag, time span, why), and a bag with
-no piece long enough is refused with an error naming the gaps.
+at least ``min_samples`` aligned samples, no saturation against limits the description gives,
+some excitation. What is sound is salvaged, with a :class:`DataWarning` naming bag, topic and
+problem: a stamp that goes backwards or repeats splits the recording there; an aligned sample
+with a NaN/inf in a used signal is dropped and splits the recording there; gaps of up to
+``max_gap_samples`` missing samples are filled by linear interpolation (and counted), a longer
+gap splits the recording. The pieces become segments ``<bag>#1``, ``<bag>#2``, ... (each fitted
+with its own initial state); a piece shorter than ``min_samples`` is dropped with a
+:class:`DataWarning` (bag, time span, why), and a bag with no piece long enough is refused with
+an error naming the splits. A killed recording (unfinished MCAP file) is read up to its last
+complete chunk (:func:`dvt_model.recording.read_topics`), with a :class:`DataWarning`.
 
 Pre-processing: low-pass Butterworth on inputs and outputs alike (like MATLAB ``idfilt``; optionally
 zero-phase) and decimation with an anti-alias filter.
@@ -19,6 +23,7 @@ zero-phase) and decimation with an anti-alias filter.
 
 from __future__ import annotations
 
+import math
 import shutil
 import warnings
 from collections.abc import Mapping, Sequence
@@ -34,14 +39,14 @@ from dvt_identify.errors import DataError
 
 Array = NDArray[np.float64]
 FIELDS = ("position", "velocity", "effort")
-JOINT_STATE = "sensor_msgs/msg/JointState"
 #: Joins a bag path and the number of one of its pieces in a segment name (``<bag>#2``).
 SEGMENT_SEP = "#"
 
 
 class DataWarning(UserWarning):
-    """Part of a recording is not used (e.g. a piece too short between long gaps); the message
-    names the bag, the time span and why."""
+    """Part of a recording is not used (a piece too short between long gaps, a non-finite
+    sample, a stamp that does not increase, the cut end of a killed recording); the message
+    names the bag, the topic, the time or stamps and why."""
 
 
 @dataclass(frozen=True)
@@ -154,23 +159,34 @@ def make_segment(name: str, t: ArrayLike, u: ArrayLike, y: ArrayLike,
 def read_jointstate_topics(bag: str | Path, topics: Sequence[str]) -> dict[str, JointStateSeries]:
     """Read the JointState ``topics`` of ``bag`` in one pass; other topics are ignored.
 
-    Uses :func:`dvt_model.bagio.read_topics` (bulk decoding of the raw CDR).
+    Uses :func:`dvt_model.recording.read_topics` (bulk decoding of the raw CDR); empty fields
+    become ``None``. Values are returned as recorded (no stamp or NaN checks). A killed
+    recording (unfinished MCAP file) is read up to its last complete chunk: its
+    :class:`~dvt_model.errors.RecordingWarning` is passed on as a :class:`DataWarning`.
 
     Raises:
-        DataError: the bag cannot be opened, a topic is missing, not JointState, has no
-            messages, a message is undecodable, or its joint names or array lengths change
-            between messages (the message names bag, topic, message index and field).
+        DataError: the bag cannot be opened or holds no complete message, a topic is missing,
+            not JointState, has no messages, a message is undecodable, or its joint names or
+            array lengths change between messages (the message names bag, topic, message index
+            and field).
     """
-    from dvt_model.bagio import read_topics
-    from dvt_model.errors import BagError
+    from dvt_model.errors import BagError, RecordingWarning
+    from dvt_model.recording import read_topics
 
     path = Path(bag)
     if not path.exists():
         raise DataError(f"{path}: bag not found")
     try:
-        series = read_topics(path, topics)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RecordingWarning)
+            series = read_topics(path, topics)
     except BagError as exc:
         raise DataError(str(exc)) from exc
+    for w in caught:
+        if issubclass(w.category, RecordingWarning):
+            warnings.warn(DataWarning(str(w.message)), stacklevel=2)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return {topic: JointStateSeries(
         stamps_ns=ser.stamps_ns, names=ser.names,
         position=ser.position if ser.position.shape[1] else None,
@@ -184,13 +200,15 @@ def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries
 
     Every message's ``header.stamp`` and the bag's log time are the series' stamp. Empty fields
     are written as empty arrays. With ``overwrite`` an existing *bag* directory (one that holds a
-    ``metadata.yaml``) is replaced; any other existing path is refused.
+    ``metadata.yaml``) is replaced; any other existing path is refused. Uses
+    :func:`dvt_model.recording.write_topics` (the one writer).
 
     Raises:
-        DataError: the path exists, or a series has inconsistent shapes.
+        DataError: the path exists, or a series has inconsistent shapes (names bag, topic and
+            field).
     """
-    from dvt_model.bagio import joint_state_cdr, write_bag
     from dvt_model.errors import BagError
+    from dvt_model.recording import TopicSeries, write_topics
 
     out = Path(path)
     if out.exists():
@@ -200,24 +218,16 @@ def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries
             raise DataError(f"{out}: output bag already exists"
                             + ("" if overwrite else " (pass --force to replace it)")
                             + ("" if not overwrite else " and is not a bag directory"))
-    for topic, ser in topics.items():
-        n = ser.stamps_ns.shape[0]
-        for fname in FIELDS:
-            arr = ser.field_array(fname)
-            if arr is not None and arr.shape != (n, len(ser.names)):
-                raise DataError(f"{out}: topic {topic}: {fname}: expected shape "
-                                f"{(n, len(ser.names))}, got {arr.shape}")
-    streams = [
-        (topic, JOINT_STATE,
-         [(int(stamp), joint_state_cdr(
-             int(stamp), ser.names,
-             position=None if ser.position is None else ser.position[i],
-             velocity=None if ser.velocity is None else ser.velocity[i],
-             effort=None if ser.effort is None else ser.effort[i]))
-          for i, stamp in enumerate(ser.stamps_ns)])
-        for topic, ser in topics.items()]
+
+    def rows(ser: JointStateSeries, fname: str) -> Array:
+        arr = ser.field_array(fname)
+        return np.zeros((ser.stamps_ns.shape[0], 0)) if arr is None else arr
+
     try:
-        return write_bag(out, streams)
+        return write_topics(out, {topic: TopicSeries(
+            stamps_ns=ser.stamps_ns, names=ser.names, velocity=rows(ser, "velocity"),
+            effort=rows(ser, "effort"), position=rows(ser, "position"))
+            for topic, ser in topics.items()})
     except BagError as exc:
         raise DataError(str(exc)) from exc
 
@@ -232,7 +242,8 @@ class Checks:
 
     Attributes:
         min_samples: fewest aligned samples a bag, and each segment cut from it, may have; a
-            shorter piece between long gaps is dropped with a :class:`DataWarning`.
+            shorter piece (between long gaps, non-finite samples or stamps that do not
+            increase) is dropped with a :class:`DataWarning`.
         max_gap_samples: longest run of missing samples filled by interpolation; a longer gap
             splits the recording into segments (see :func:`load_bag_segments`).
         max_saturated_fraction: largest fraction of samples allowed at a signal's saturation
@@ -247,6 +258,7 @@ class Checks:
 
 
 def _signal_column(path: Path, series: JointStateSeries, spec: SignalSpec) -> Array:
+    """The scaled values of ``spec`` in every message of its topic (non-finite values kept)."""
     if spec.field not in FIELDS:
         raise DataError(f"{path}: topic {spec.topic}: unknown field {spec.field!r} "
                         f"(expected one of {', '.join(FIELDS)})")
@@ -257,51 +269,76 @@ def _signal_column(path: Path, series: JointStateSeries, spec: SignalSpec) -> Ar
     if arr is None:
         raise DataError(f"{path}: topic {spec.topic}: field {spec.field} is empty "
                         f"(needed for joint {spec.joint})")
-    col = arr[:, series.names.index(spec.joint)] * spec.scale
-    bad = ~np.isfinite(col)
-    if np.any(bad):
-        i = int(np.argmax(bad))
-        t = (series.stamps_ns[i] - series.stamps_ns[0]) * 1e-9
-        raise DataError(f"{path}: topic {spec.topic}: {spec.field}[{spec.joint}] is "
-                        f"{col[i]} at message {i} (t = {t:.6f} s); {int(bad.sum())} "
-                        "non-finite values")
+    with np.errstate(invalid="ignore", over="ignore"):
+        col = arr[:, series.names.index(spec.joint)] * spec.scale
     return np.asarray(col, dtype=float)
 
 
-def _check_stamps(path: Path, topic: str, stamps: NDArray[np.int64]) -> None:
-    d = np.diff(stamps)
-    if np.any(d <= 0):
-        i = int(np.argmax(d <= 0))
-        raise DataError(f"{path}: topic {topic}: stamps not strictly increasing at message "
-                        f"{i + 1} ({stamps[i]} ns -> {stamps[i + 1]} ns)")
+def _runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """Index ranges ``[start, stop)`` of the runs of True in ``mask``."""
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(),
+                    strict=True))
 
 
-def _align(path: Path, stamps: dict[str, NDArray[np.int64]], reference: str
-           ) -> dict[str, NDArray[np.int64]]:
-    """Index arrays into each topic's messages for the common samples (by stamp)."""
-    ref = stamps[reference]
-    common = ref
-    for s in stamps.values():
-        common = np.intersect1d(common, s, assume_unique=True)
-    if common.size >= 0.99 * min(s.size for s in stamps.values()):
-        return {t: np.searchsorted(s, common) for t, s in stamps.items()}
-    # Not identical stamps: match each topic to the reference by nearest stamp within dt/4.
-    dt = float(np.median(np.diff(ref))) if ref.size > 1 else 1.0
-    keep = np.ones(ref.size, dtype=bool)
-    idx: dict[str, NDArray[np.int64]] = {}
-    for topic, s in stamps.items():
-        j = np.clip(np.searchsorted(s, ref), 1, max(s.size - 1, 1))
-        left = np.abs(ref - s[j - 1])
-        right = np.abs(s[np.minimum(j, s.size - 1)] - ref)
-        best = np.where(left <= right, j - 1, np.minimum(j, s.size - 1))
-        ok = np.abs(s[best] - ref) <= dt / 4
-        keep &= ok
-        idx[topic] = best
-    if keep.sum() < 0.5 * ref.size:
-        others = [t for t in stamps if t != reference]
-        raise DataError(f"{path}: topics {reference} and {', '.join(others)}: fewer than half "
-                        "of the samples share a stamp (within a quarter sample); cannot align")
-    return {t: i[keep] for t, i in idx.items()}
+def _stamp_breaks(stamps: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Indices of the messages whose stamp does not exceed the previous message's."""
+    return np.flatnonzero(np.diff(stamps) <= 0).astype(np.int64) + 1
+
+
+def _pair_pieces(path: Path, stamps: Mapping[str, NDArray[np.int64]],
+                 breaks: Mapping[str, NDArray[np.int64]], reference: str
+                 ) -> tuple[list[dict[str, NDArray[np.int64]]], list[str]]:
+    """Pair the topics' messages by stamp within runs of strictly increasing stamps.
+
+    Each topic's messages (recorded order) are cut at its ``breaks`` (stamps that go backwards
+    or repeat) into runs. Walking through the recording, the current run of every topic is
+    trimmed to the stamp span all of them cover (within a quarter sample) and paired by
+    :func:`dvt_model.recording.pair_stamps` (identical stamps, else nearest within a quarter
+    sample); the run that ends first is then left for the next. Without a break this is one
+    pairing of the whole recording.
+
+    Returns:
+        The paired pieces in recording order (per topic, indices into its messages), and the
+        messages of the pairings that failed (each names the bag and the topics).
+    """
+    from dvt_model.errors import BagError
+    from dvt_model.recording import pair_stamps
+
+    runs = {t: list(pairwise([0, *breaks[t].tolist(), int(st.size)]))
+            for t, st in stamps.items()}
+    steps = np.diff(stamps[reference])
+    steps = steps[steps > 0]
+    tol = int(0.25 * float(np.median(steps))) if steps.size else 0  # [ns]
+    run_no = dict.fromkeys(stamps, 0)
+    cursor = dict.fromkeys(stamps, 0)
+    pieces: list[dict[str, NDArray[np.int64]]] = []
+    failed: list[str] = []
+    while all(run_no[t] < len(runs[t]) for t in stamps):
+        window = {t: (max(runs[t][run_no[t]][0], cursor[t]), runs[t][run_no[t]][1])
+                  for t in stamps}
+        lo = np.int64(max(int(stamps[t][a]) for t, (a, _) in window.items()) - tol)
+        hi = np.int64(min(int(stamps[t][b - 1]) for t, (_, b) in window.items()) + tol)
+        sub: dict[str, tuple[int, int]] = {}
+        for t, (a, b) in window.items():
+            st = stamps[t][a:b]
+            sub[t] = (a + int(np.searchsorted(st, lo, side="left")),
+                      a + int(np.searchsorted(st, hi, side="right")))
+        if all(i1 > i0 for i0, i1 in sub.values()):
+            try:
+                pairing = pair_stamps({t: stamps[t][i0:i1] for t, (i0, i1) in sub.items()},
+                                      reference, where=str(path))
+            except BagError as exc:
+                failed.append(str(exc))
+            else:
+                if pairing.n:
+                    pieces.append({t: (pairing.index[t] + sub[t][0]).astype(np.int64)
+                                   for t in stamps})
+        for t, (_, i1) in sub.items():
+            cursor[t] = i1
+            if i1 >= window[t][1]:
+                run_no[t] += 1
+    return pieces, failed
 
 
 def check_signal(path: str | Path, topic: str, name: str, x: Array, spec: SignalSpec | None,
@@ -372,64 +409,180 @@ def split_at_gaps(t: Array, dt: float, max_gap: int) -> tuple[list[tuple[int, in
     return list(pairwise(bounds)), gaps
 
 
+_MOST_WARNED = 5
+"""Dropped pieces warned about one by one; the rest of a bag's in one summary warning."""
+
+
 def _gap_list(gaps: Sequence[Gap], most: int = 5) -> str:
     text = "; ".join(str(g) for g in gaps[:most])
     return text + (f"; and {len(gaps) - most} more" if len(gaps) > most else "")
 
 
+def _warn_stamp_breaks(path: Path, topic: str, stamps: NDArray[np.int64],
+                       breaks: NDArray[np.int64], t0: int) -> str:
+    """Warn (one :class:`DataWarning` per topic) about stamps that go backwards or repeat;
+    return a short description for an error message."""
+    def one(i: int) -> str:
+        kind = "repeats" if stamps[i] == stamps[i - 1] else "goes backwards"
+        return (f"message {i} ({kind}: {int(stamps[i])} ns after {int(stamps[i - 1])} ns, "
+                f"t = {(int(stamps[i - 1]) - t0) * 1e-9:.6f} s)")
+
+    listed = [one(int(i)) for i in breaks[:5]]
+    more = f"; and {breaks.size - 5} more" if breaks.size > 5 else ""
+    count = ("a stamp that does not increase" if breaks.size == 1
+             else f"{breaks.size} stamps that do not increase")
+    warnings.warn(DataWarning(
+        f"{path}: topic {topic}: header.stamp does not strictly increase at "
+        f"{'; '.join(listed)}{more}: the recording is split there ({count})"), stacklevel=3)
+    return f"topic {topic}: {count} (first at {listed[0]})"
+
+
+def _warn_non_finite(path: Path, spec: SignalSpec, first_row: tuple[float, int, int, float],
+                     n: int) -> str:
+    """Warn (one :class:`DataWarning` per signal) about the ``n`` aligned samples with a
+    non-finite value of ``spec`` (``first_row``: time [s], stamp [ns], message index and value
+    of the first); return a short description."""
+    t, stamp, msg, value = first_row
+    first = f"t = {t:.6f} s (stamp {stamp} ns, message {msg})"
+    count = "1 sample" if n == 1 else f"{n} samples"
+    warnings.warn(DataWarning(
+        f"{path}: topic {spec.topic}: {spec.field}[{spec.joint}] ({spec.name}) is {value} at "
+        f"{first}{'' if n == 1 else ' and in ' + str(n - 1) + ' more samples'}: {count} with a "
+        f"non-finite value dropped, the recording is split there"), stacklevel=3)
+    return (f"topic {spec.topic}: {spec.field}[{spec.joint}] non-finite in {count} (first at "
+            f"{first})")
+
+
 def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
                       outputs: Sequence[SignalSpec], checks: Checks | None = None
                       ) -> list[Segment]:
-    """Read, align and check one bag; return its :class:`Segment` (one per gap-free piece).
+    """Read, align and check one bag; return its :class:`Segment` (one per sound piece).
 
     The reference clock is the first output's topic; other topics are matched by identical stamp
-    (the contract), or else by nearest stamp within a quarter sample. Gaps of up to
-    ``checks.max_gap_samples`` missing samples are filled by linear interpolation; a longer gap
-    splits the recording into segments named ``<bag>#1``, ``<bag>#2``, ... (in time order; a bag
-    without such a gap keeps the name ``<bag>``), each with time from 0 and fitted with its own
+    (the contract), or else by nearest stamp within a quarter sample. What is sound is kept and
+    the recording is split around the rest, each time with a :class:`DataWarning` naming the
+    bag, the topic and the problem:
+
+    * a stamp that goes backwards or repeats (on any topic read) splits the recording there
+      (the warning names the message and the two stamps);
+    * an aligned sample with a NaN or inf in a used input or output is dropped and splits the
+      recording there (the warning names the topic, field, joint, time and how many samples);
+    * gaps of up to ``checks.max_gap_samples`` missing samples are filled by linear
+      interpolation (noted in the segment); a longer gap splits the recording (no warning:
+      nothing is lost);
+    * a killed recording is read up to its last complete chunk.
+
+    The pieces become segments named ``<bag>#1``, ``<bag>#2``, ... (in recording order; a bag
+    without a split keeps the name ``<bag>``), each with time from 0 and fitted with its own
     initial state. A piece with fewer than ``checks.min_samples`` samples is dropped with a
     :class:`DataWarning` naming the bag, its time span and why. Saturation, constant outputs and
     excitation are checked over the kept samples of the bag together.
 
     Raises:
         DataError: naming the bag, topic and problem (also when no piece is long enough: then
-            it names the gaps).
+            it names the gaps and the other splits).
     """
     checks = checks or Checks()
     path = Path(bag)
     specs = list(outputs) + list(inputs)
     topics = list(dict.fromkeys(s.topic for s in specs))
-    series = read_jointstate_topics(path, topics)
-    for topic, ser in series.items():
-        _check_stamps(path, topic, ser.stamps_ns)
-    cols_by_spec = [_signal_column(path, series[s.topic], s) for s in specs]
-    idx = _align(path, {t: series[t].stamps_ns for t in topics}, outputs[0].topic)
     ref_topic = outputs[0].topic
-    stamps = series[ref_topic].stamps_ns[idx[ref_topic]]
-    cols = np.column_stack([c[idx[s.topic]] for c, s in zip(cols_by_spec, specs, strict=True)])
-    if stamps.size < checks.min_samples:
-        raise DataError(f"{path}: topic {ref_topic}: too little data: {stamps.size} aligned "
-                        f"samples (need at least {checks.min_samples})")
-    t = (stamps - stamps[0]).astype(float) * 1e-9
-    dt = float(np.median(np.diff(t)))
-    pieces, gaps = split_at_gaps(t, dt, checks.max_gap_samples)
+    series = read_jointstate_topics(path, topics)
+    cols_by_spec = [_signal_column(path, series[s.topic], s) for s in specs]
+    stamps_of = {t: series[t].stamps_ns for t in topics}
+    breaks = {t: _stamp_breaks(st) for t, st in stamps_of.items()}
+    paired, failed = _pair_pieces(path, stamps_of, breaks, ref_topic)
+    if not paired:
+        raise DataError(failed[0] if failed else
+                        f"{path}: topics {', '.join(topics)}: no samples to pair")
+    if failed:
+        warnings.warn(DataWarning(
+            f"{failed[0]}: {len(failed)} of the pieces between stamps that do not increase "
+            "could not be paired and are dropped"), stacklevel=2)
+    ref_stamps = stamps_of[ref_topic]
+    t0 = int(ref_stamps[paired[0][ref_topic][0]])
+    problems: list[str] = []
+    reasons: list[str] = []
+    for topic in topics:
+        if breaks[topic].size:
+            problems.append(_warn_stamp_breaks(path, topic, stamps_of[topic], breaks[topic], t0))
+    if any(breaks[t].size for t in topics):
+        reasons.append("stamps that do not increase")
+    n_aligned = sum(int(pc[ref_topic].size) for pc in paired)
+    if n_aligned < checks.min_samples:
+        raise DataError(f"{path}: topic {ref_topic}: too little data: {n_aligned} aligned "
+                        f"samples (need at least {checks.min_samples})"
+                        + (f"; {'; '.join(problems)}" if problems else ""))
+    # Drop the aligned samples with a non-finite value; split there.
+    blocks: list[tuple[Array, Array]] = []
+    bad_count = [0] * len(specs)
+    bad_first: list[tuple[float, int, int, float] | None] = [None] * len(specs)
+    for pc in paired:
+        stamps = ref_stamps[pc[ref_topic]]
+        cols = np.column_stack([c[pc[s.topic]]
+                                for c, s in zip(cols_by_spec, specs, strict=True)])
+        finite = np.isfinite(cols)
+        for j, s in enumerate(specs):
+            bad = np.flatnonzero(~finite[:, j])
+            if bad.size and bad_first[j] is None:
+                i = int(bad[0])
+                bad_first[j] = ((int(stamps[i]) - t0) * 1e-9, int(stamps[i]),
+                                int(pc[s.topic][i]), float(cols[i, j]))
+            bad_count[j] += int(bad.size)
+        t = (stamps - t0).astype(float) * 1e-9
+        good = np.asarray(finite.all(axis=1), dtype=bool)
+        blocks += [(t[a:b], cols[a:b]) for a, b in _runs(good)]
+    for s, first, count in zip(specs, bad_first, bad_count, strict=True):
+        if first is not None:
+            problems.append(_warn_non_finite(path, s, first, count))
+    if any(bad_count):
+        reasons.append("non-finite samples")
+    steps = np.concatenate([np.diff(t) for t, _ in blocks] or [np.zeros(0)])
+    dt = float(np.median(steps)) if steps.size else math.nan
+    if not dt > 0:
+        raise DataError(f"{path}: topic {ref_topic}: no two consecutive usable samples"
+                        + (f"; {'; '.join(problems)}" if problems else ""))
+    pieces: list[tuple[Array, Array]] = []
+    gaps: list[Gap] = []
+    for t, cols in blocks:
+        cuts, found = split_at_gaps(t, dt, checks.max_gap_samples)
+        pieces += [(t[a:b], cols[a:b]) for a, b in cuts]
+        gaps += found
+    if gaps:
+        reasons.insert(0, f"gaps of more than {checks.max_gap_samples} missing samples")
+    between = " or ".join(reasons)
     split = len(pieces) > 1
     kept: list[tuple[int, Array, Array, int]] = []
-    for k, (i0, i1) in enumerate(pieces, start=1):
-        if i1 - i0 < checks.min_samples:
+    short = [k for k, (t, _) in enumerate(pieces, start=1) if t.size < checks.min_samples]
+    for k, (t, cols) in enumerate(pieces, start=1):
+        if t.size >= checks.min_samples:
+            kept.append((k, *_fill_gaps(t, cols, dt)))
+        elif k in short[:_MOST_WARNED]:
             warnings.warn(DataWarning(
-                f"{path}: topic {ref_topic}: samples at t = {t[i0]:.6f} .. {t[i1 - 1]:.6f} s "
-                f"(piece {k} of {len(pieces)}, {i1 - i0} samples between gaps of more than "
-                f"{checks.max_gap_samples} missing samples) dropped: fewer than min_samples = "
-                f"{checks.min_samples}"), stacklevel=2)
-            continue
-        grid, filled, missing = _fill_gaps(t[i0:i1], cols[i0:i1], dt)
-        kept.append((k, grid, filled, missing))
+                f"{path}: topic {ref_topic}: samples at t = {t[0]:.6f} .. {t[-1]:.6f} s "
+                f"(piece {k} of {len(pieces)}, {t.size} samples between {between}) dropped: "
+                f"fewer than min_samples = {checks.min_samples}"), stacklevel=2)
+    if len(short) > _MOST_WARNED:
+        rest = [pieces[k - 1][0] for k in short[_MOST_WARNED:]]
+        warnings.warn(DataWarning(
+            f"{path}: topic {ref_topic}: {len(rest)} more pieces (pieces "
+            f"{short[_MOST_WARNED]} .. {short[-1]} of {len(pieces)}, "
+            f"{sum(t.size for t in rest)} samples at t = {rest[0][0]:.6f} .. {rest[-1][-1]:.6f} "
+            f"s, between {between}) dropped: fewer than min_samples = {checks.min_samples} "
+            "each"), stacklevel=2)
     if not kept:
+        sizes = ", ".join(str(t.size) for t, _ in pieces)
+        if problems:
+            if gaps:
+                problems.insert(0, f"{len(gaps)} gap(s) of more than {checks.max_gap_samples} "
+                                   f"missing samples: {_gap_list(gaps)}")
+            raise DataError(f"{path}: topic {ref_topic}: no piece of at least "
+                            f"{checks.min_samples} samples between the splits of the "
+                            f"recording: {'; '.join(problems)} (pieces of {sizes} samples)")
         raise DataError(f"{path}: topic {ref_topic}: no piece of at least {checks.min_samples} "
                         f"samples between the {len(gaps)} gap(s) of more than "
                         f"{checks.max_gap_samples} missing samples: {_gap_list(gaps)} (pieces of "
-                        f"{', '.join(str(b - a) for a, b in pieces)} samples)")
+                        f"{sizes} samples)")
     every = np.concatenate([c for _, _, c, _ in kept])
     for j, s in enumerate(specs):
         check_signal(path, s.topic, s.name, every[:, j], s, checks)
@@ -446,8 +599,7 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
         notes: tuple[str, ...] = ()
         if split:
             notes += (f"piece {k} of {len(pieces)} of {path}: t = {grid[0]:.6f} .. "
-                      f"{grid[-1]:.6f} s of the recording (split at gaps of more than "
-                      f"{checks.max_gap_samples} missing samples)",)
+                      f"{grid[-1]:.6f} s of the recording (split at {between})",)
         if missing:
             notes += (f"{missing} missing samples filled by linear interpolation",)
         seg = make_segment(f"{path}{SEGMENT_SEP}{k}" if split else str(path), grid,
@@ -462,14 +614,14 @@ def load_segment(bag: str | Path, inputs: Sequence[SignalSpec], outputs: Sequenc
     """:func:`load_bag_segments` for a bag that must give exactly one segment.
 
     Raises:
-        DataError: as :func:`load_bag_segments`, or when long gaps split the bag into several
-            segments (the message names the gaps).
+        DataError: as :func:`load_bag_segments`, or when the bag is split into several
+            segments (long gaps, non-finite samples, stamps that do not increase; the message
+            names the segments).
     """
     segs = load_bag_segments(bag, inputs, outputs, checks)
     if len(segs) > 1:
-        checks = checks or Checks()
-        raise DataError(f"{bag}: topic {outputs[0].topic}: gaps of more than "
-                        f"{checks.max_gap_samples} missing samples split the recording into "
+        why = segs[0].notes[0].rsplit("(split at ", 1)[-1].rstrip(")")
+        raise DataError(f"{bag}: topic {outputs[0].topic}: {why} split the recording into "
                         f"{len(segs)} segments ({', '.join(s.name for s in segs)}); read it "
                         "with load_bag_segments")
     return segs[0]

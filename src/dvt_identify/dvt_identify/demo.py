@@ -37,9 +37,9 @@ def _log(msg: str) -> None:
 
 def simulated_bag(path: Path, seconds: float = 6.0, seed: int = 7) -> Path:
     """A run simulated by the physics core (plant parameters, sensor noise) as a bag."""
-    from dvt_model.bagio import write_run
     from dvt_model.hybrid import HybridModel
     from dvt_model.params import load_parameters
+    from dvt_model.recording import write_run
 
     model = HybridModel.from_params(load_parameters("physical"))
     n = int(seconds * 1000)
@@ -200,7 +200,7 @@ class _Live:
 
 def _aligned(bag: Path, pred: dict[int, list[float]]) -> tuple[Any, Any, Any]:
     """The recorded run, the indices of its samples that were predicted, the predictions."""
-    from dvt_model.bagio import read_run
+    from dvt_model.recording import read_run
 
     run = read_run(bag)
     idx = np.array([k for k, s in enumerate(run.stamps_ns) if int(s) in pred])

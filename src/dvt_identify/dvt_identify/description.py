@@ -15,7 +15,8 @@ A description is a YAML file (see ``descriptions/emps.yaml`` for a complete exam
       speed_unit: m/s
       parameters: {M: {initial: 100, lower: 0.001, unit: kg}, Fv: {initial: 200, lower: 0}}
     model_effects:                # part of the baseline model (e.g. the band brakes)
-      - {effect: brake_lockup, where: ring1, member: {...}, input: brake1, initial: {Tb: 8}}
+      - {effect: brake_lockup, where: ring1, member: {...}, input: brake1,
+         initial: {band_gain: 8}}
     candidates:
       - {effect: coulomb_friction, where: carriage, offset: true}
     preprocess: {lowpass: null, decimate: 1, fit_decimate: 1}
@@ -31,7 +32,7 @@ Structure types:
   ``F = M^-1``.
 - ``python``: ``class: "package.module:Class"`` and ``options``; the class is called as
   ``Class(state_names=..., input_names=..., **options)`` and must satisfy
-  :class:`dvt_identify.oe.ModelStructure`.
+  :class:`dvt_identify.structures.ModelStructure`.
 
 The states are the outputs, in order (C = I). ``load_description`` takes a file path or the name of
 a bundled description (``descriptions/<name>.yaml``); the default name is ``dvt``.
@@ -51,7 +52,7 @@ import yaml
 from dvt_identify.data import Checks, SignalSpec
 from dvt_identify.effects import VOCABULARY, Effect, make_effect
 from dvt_identify.errors import DescriptionError
-from dvt_identify.oe import MechanicalStructure, ModelStructure, StateSpaceStructure
+from dvt_identify.structures import MechanicalStructure, ModelStructure, StateSpaceStructure
 
 DEFAULT_DESCRIPTION = "dvt"
 
@@ -131,7 +132,7 @@ class Description:
     def make_model_effects(self) -> list[Effect]:
         """Build the effects that are part of the baseline model (``model_effects``, e.g. the
         band brakes), with the initial values of their ``initial`` option; parameter names are
-        ``<name>_<where>`` (``Tb_ring1``, ``tau_brake1``)."""
+        ``<name>_<where>`` (``band_gain_ring1``, ``band_time_constant_brake1``)."""
         return self._build(self.model_effects, always=True, taken=set())
 
     def _build(self, specs: tuple[CandidateSpec, ...], always: bool, taken: set[str]
@@ -157,6 +158,11 @@ class Description:
                     raise DescriptionError(f"{self.source}: {c.effect}@{c.where}: initial: "
                                            f"expected a mapping, got {init!r}")
                 base = {s.name: s.name.removesuffix(suffix) for s in eff.params}
+                unknown = sorted(str(k) for k in init if k not in base.values())
+                if unknown:
+                    raise DescriptionError(f"{self.source}: {c.effect}@{c.where}: initial: "
+                                           f"unknown parameter(s) {unknown} (expected "
+                                           f"{sorted(base.values())})")
                 eff = eff.with_initial({name: float(init[b]) for name, b in base.items()
                                         if b in init})
             out.append(eff)

@@ -28,5 +28,15 @@ class ImportDataError(DvtIdentifyError, ValueError):
     """Columns given to ``dvt-import`` are unusable (missing column, NaN, time not increasing)."""
 
 
+class PushError(DvtIdentifyError, ValueError):
+    """An identified model cannot be pushed to the model node (not the DVT structure, or a
+    value the node would refuse); the message names the parameter and the value."""
+
+
+class BenchError(DvtIdentifyError, ValueError):
+    """A ``dvt-bench identify`` setting is unusable (the message names the option and value,
+    e.g. a missing default recording)."""
+
+
 class FitError(DvtIdentifyError, RuntimeError):
     """A fit could not be carried out (bad shapes, simulation diverged, no finite start)."""

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,11 +38,12 @@ from scipy.optimize import lsq_linear
 
 from dvt_identify.data import Segment, decimate
 from dvt_identify.description import Description, FitOptions
-from dvt_identify.effects import Effect, MeasurementDelay, PeriodicDisturbance, SegmentView
+from dvt_identify.effects import Effect, ScoringContext, SegmentView
 from dvt_identify.errors import DataError, FitError
+from dvt_identify.fit import OEFit, Progress
 from dvt_identify.metrics import Figures, figures
-from dvt_identify.oe import OEFit, OEModel, Progress
 from dvt_identify.resid import OutputResidual, Spectrum, residual_analysis, residual_spectrum
+from dvt_identify.simulation import OEModel
 
 Array = NDArray[np.float64]
 ABSORBED = 0.02  # a regressor with less than 2 % of its norm outside the model's span is absorbed
@@ -78,14 +79,13 @@ class LoopConfig:
     fit_decimate: int = 1
 
     @classmethod
-    def from_options(cls, opts: FitOptions, fit_decimate: int = 1, **overrides: object
-                     ) -> LoopConfig:
-        """Config from a description's ``fit`` section plus overrides."""
-        base = cls(starts=opts.starts, refit_starts=opts.refit_starts, alpha=opts.alpha,
+    def from_options(cls, opts: FitOptions, fit_decimate: int = 1) -> LoopConfig:
+        """Config from a description's ``fit`` section (override fields with
+        :func:`dataclasses.replace`)."""
+        return cls(starts=opts.starts, refit_starts=opts.refit_starts, alpha=opts.alpha,
                    min_validation_gain=opts.min_validation_gain, max_effects=opts.max_effects,
                    max_tries_per_round=opts.max_tries_per_round, seed=opts.seed,
                    fit_decimate=fit_decimate)
-        return replace(base, **overrides)  # type: ignore[arg-type]
 
 
 @dataclass
@@ -305,6 +305,9 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
     base = [fit.model.simulate(fit.theta_, s, x0) for s, x0 in zip(segments, fit.x0_,
                                                                      strict=True)]
     view = SegmentView(segments[0].dt, segments[0].u, segments[0].y)
+    ctx = ScoringContext(
+        views=[SegmentView(s.dt, s.u, s.y) for s in segments], simulated=base, weights=w,
+        member_residual=lambda member: member_force_residual(fit, segments[0], member))
     scores = []
     for cand in candidates:
         t0 = time.monotonic()
@@ -324,8 +327,9 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
             for gname in cand.gain_names():
                 gi = cand.pindex(gname)
                 spec = cand.params[gi]
-                if isinstance(cand, MeasurementDelay):
-                    h = segments[0].dt
+                fixed_step = cand.scoring_step(gname, segments[0].dt)
+                if fixed_step is not None:
+                    h = fixed_step
                 elif gname in probes:
                     h = probes[gname]
                 elif spec.step is not None:
@@ -371,25 +375,14 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                     effect=cand.with_initial(implied), r2=r2, r2_raw=r2_raw, lm=lm, dof=dof,
                     p_value=float(stats.chi2.sf(lm, dof)), corr=corr, corr_raw=corr_raw,
                     variant=vlabel, variants=variants, implied=implied)
-        assert best is not None
+        if best is None:
+            raise FitError(f"{cand.label()}: no variant to score (its variants() is empty)")
         best.variants = variants
-        if isinstance(cand, MeasurementDelay):
-            scan = []
-            for seg, yb in zip(segments, base, strict=True):
-                scan.append(cand.scan(yb, seg.y, seg.dt, float(w[cand.index])))
-            tot = [{"delay_s": s0["delay_s"], "sse": sum(s[i]["sse"] for s in scan)}
-                   for i, s0 in enumerate(scan[0])]
-            kbest = min(tot, key=lambda d: d["sse"])
-            best.extra["delay_scan"] = tot
-            best.extra["best_delay_s"] = kbest["delay_s"]
-            best.extra["sse_reduction_percent_at_best_delay"] = (
-                100.0 * (tot[0]["sse"] - kbest["sse"]) / tot[0]["sse"] if tot[0]["sse"] else 0.0)
-            if kbest["delay_s"] > 0:
-                best.effect = best.effect.with_initial({cand.params[0].name: kbest["delay_s"]})
-                best.implied[cand.params[0].name] = kbest["delay_s"]
-        if isinstance(cand, PeriodicDisturbance) and cand.member is not None:
-            best.extra["order_spectrum"] = cand.order_spectrum(
-                member_force_residual(fit, segments[0], cand.member), view)
+        extra, start = cand.scoring_evidence(ctx)
+        best.extra.update(extra)
+        if start:
+            best.effect = best.effect.with_initial(start)
+            best.implied.update(start)
         scores.append(best)
         if progress:
             progress(f"  score {best.label:<40s} R2 {100 * best.r2:7.3f} %  "

@@ -7,7 +7,7 @@ Requests (either):
 - topic ``/dvt/identify/request`` (std_msgs/String): a JSON object
   ``{"estimation": [BAG, ...], "validation": [BAG, ...]}`` naming the bags.
 
-The identification (:func:`dvt_identify.cli.run`: baseline fit, residual tracing, augmentation,
+The identification (:func:`dvt_identify.pipeline.run`: baseline fit, residual tracing, augmentation,
 report in ``output_dir``) runs in a worker thread; the service answers at once ("started" or why
 not). When it ends, the accepted model is pushed to ``model_node`` through its standard
 parameter services (``M``, ``D``, ``effects``; see :mod:`dvt_identify.push`), so the live
@@ -27,23 +27,29 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from dvt_identify.cli import run
 from dvt_identify.errors import DvtIdentifyError
-from dvt_identify.push import model_node_parameters
+from dvt_identify.pipeline import model_push, run
 from dvt_model import rosutil
+from dvt_model.contract import (
+    IDENTIFY_NODE,
+    IDENTIFY_REQUEST,
+    IDENTIFY_RESULT,
+    MODEL_NODE,
+    SRV_IDENTIFY_RUN,
+)
 
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED = rosutil.LATCHED_QOS
+"""QoS of the result: a late subscriber still gets the last one (the contract's LATCHED_QOS)."""
 
 
 class IdentifyNode(Node):
     """Identification on request (see module docstring)."""
 
     def __init__(self) -> None:
-        super().__init__("dvt_identify")
+        super().__init__(IDENTIFY_NODE)
         self.declare_parameter("description", "dvt", ParameterDescriptor(
             description="actuator description: bundled name or YAML path"))
         self.declare_parameter("estimation_bags", [""], ParameterDescriptor(
@@ -56,17 +62,17 @@ class IdentifyNode(Node):
             description="run the residual-tracing augment loop after the baseline"))
         self.declare_parameter("push", True, ParameterDescriptor(
             description="push the accepted model to model_node"))
-        self.declare_parameter("model_node", "dvt_model", ParameterDescriptor(
+        self.declare_parameter("model_node", MODEL_NODE, ParameterDescriptor(
             description="name of the model node whose parameters are set"))
         self.state = "idle"
         self.last: dict[str, Any] = {}
         self.runs = 0
         self._worker: threading.Thread | None = None
         self._lock = threading.Lock()
-        self.pub_result = self.create_publisher(String, "/dvt/identify/result", LATCHED)
+        self.pub_result = self.create_publisher(String, IDENTIFY_RESULT, LATCHED)
         self.pub_diag = self.create_publisher(rosutil.DiagnosticArray, rosutil.DIAGNOSTICS, 10)
-        self.create_service(Trigger, "/dvt/identify/run", self._on_run)
-        self.create_subscription(String, "/dvt/identify/request", self._on_request, 10)
+        self.create_service(Trigger, SRV_IDENTIFY_RUN, self._on_run)
+        self.create_subscription(String, IDENTIFY_REQUEST, self._on_request, 10)
         self.create_timer(1.0, self._diagnostics)
         self.param_client = AsyncParameterClient(self, str(self.get_parameter("model_node").value))
 
@@ -85,7 +91,7 @@ class IdentifyNode(Node):
             est = [str(b) for b in data["estimation"]]
             val = [str(b) for b in data["validation"]]
         except (ValueError, KeyError, TypeError) as exc:
-            self.get_logger().warning(f"bad request on /dvt/identify/request ({exc!r}): "
+            self.get_logger().warning(f"bad request on {IDENTIFY_REQUEST} ({exc!r}): "
                                       'expected {"estimation": [...], "validation": [...]}')
             return
         ok, why = self.start(est, val)
@@ -124,8 +130,7 @@ class IdentifyNode(Node):
                 result.final.val.output_names, result.final.val.fit_percent, strict=True))
             summary["accepted"] = [d.score.label for d in result.accepted]
             if bool(self.get_parameter("push").value):
-                n_model = len(result.description.make_model_effects())
-                push = model_node_parameters(result.final, n_model)
+                push = model_push(result)
                 summary["pushed"] = self._push(push.parameters)
                 summary["not_pushed"] = push.skipped
             self.state = "done"
@@ -166,7 +171,7 @@ class IdentifyNode(Node):
         for key in ("baseline_fit_percent", "final_fit_percent", "accepted", "error", "report"):
             if key in self.last:
                 values[key] = self.last[key]
-        self.pub_diag.publish(rosutil.diagnostic(self, "dvt_identify", level, self.state,
+        self.pub_diag.publish(rosutil.diagnostic(self, IDENTIFY_NODE, level, self.state,
                                                  values))
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dvt_identify.loop import CandidateScore, Decision, IdentificationResult, Stage
-from dvt_identify.oe import simulate_linear, zoh
+from dvt_identify.simulation import simulate_linear, zoh
 
 Array = NDArray[np.float64]
 
@@ -255,7 +255,8 @@ _PNG = {"compress_level": 1}
 _SUPERSCRIPT = str.maketrans("0123456789-−", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁻")
 
 
-def _plt():  # type: ignore[no-untyped-def]
+def _plt() -> Any:
+    """``matplotlib.pyplot`` on the Agg backend (imported on first use: no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -5,11 +5,14 @@ Also the compliant-spline load of the ``backlash`` candidate (:func:`spline_load
 The simulation of a model with state-dependent member forces (dry friction with a stick rule,
 Stribeck, windage, direction-dependent viscous friction) cannot be vectorised: each step depends
 on the previous one. These kernels run that loop in machine code;
-:func:`dvt_identify.oe.simulate_loop` prepares their arrays (and can run the same source in the
-interpreter, ``reference=True``, to check the compilation).
+:func:`dvt_identify.simulation.simulate_loop` prepares their arrays (and can run the same source
+in the interpreter, ``reference=True``, to check the compilation).
 
 Smooth laws are coded as ``(kind, p0, p1)`` (:data:`STRIBECK`, :data:`WINDAGE`,
-:data:`ABS_VISCOUS`); :func:`smooth_value` evaluates one, compiled or from Python.
+:data:`ABS_VISCOUS`); :func:`smooth_value` evaluates one, compiled or from Python. The laws
+themselves are :mod:`dvt_model.friction`'s (the one friction law of the suite), compiled here
+with ``numba.njit`` unchanged; a member force is minus the resisting force of the law, and a
+sliding dry member feels ``-coulomb(s, C, 0, 0)`` (the exact sign).
 
 The rule implemented: the linear part is advanced by its exact ZOH map, every member force is
 evaluated at the start of a step and held over it; a sliding member whose speed would cross zero
@@ -23,34 +26,39 @@ Compilation happens on the first call of a process and is cached on disk next to
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from dvt_model import friction
+
 Array = NDArray[np.float64]
 
 STRIBECK = 0
-"""``g(s) = -p0 exp(-(s/p1)^2) sign(s)`` (``p0 = Fs``, ``p1 = vs > 0``)."""
+"""``g(s) = -stribeck(s, p0, p1, eps=0)`` = ``-p0 exp(-(s/p1)^2) sign(s)`` (``p0 = Fs``,
+``p1 = vs > 0``)."""
 WINDAGE = 1
-"""``g(s) = -p0 s |s|`` (``p0 = Cw``)."""
+"""``g(s) = -windage(s, p0)`` = ``-p0 s |s|`` (``p0 = Cw``)."""
 ABS_VISCOUS = 2
-"""``g(s) = -p0 |s|`` (``p0 = dFv``)."""
+"""``g(s) = -abs_viscous(s, p0)`` = ``-p0 |s|`` (``p0 = dFv``)."""
 KINDS = (STRIBECK, WINDAGE, ABS_VISCOUS)
+
+_stribeck = njit(cache=True, nogil=True)(friction.stribeck)
+_windage = njit(cache=True, nogil=True)(friction.windage)
+_abs_viscous = njit(cache=True, nogil=True)(friction.abs_viscous)
+_coulomb = njit(cache=True, nogil=True)(friction.coulomb)
 
 
 @njit(cache=True, nogil=True)
 def smooth_value(kind: int, p0: float, p1: float, s: float) -> float:
-    """Member force of a coded smooth law at member speed ``s``."""
+    """Member force of a coded smooth law at member speed ``s`` [force unit]."""
     if kind == 0:
         if s == 0.0:
             return 0.0
-        r = s / p1
-        return -p0 * math.exp(-r * r) * (1.0 if s > 0.0 else -1.0)
+        return -_stribeck(s, p0, p1, 0.0, 2.0)
     if kind == 1:
-        return -p0 * s * abs(s)
-    return -p0 * abs(s)
+        return -_windage(s, p0)
+    return -_abs_viscous(s, p0)
 
 
 @njit(cache=True, nogil=True)
@@ -125,7 +133,7 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
             cfc = dcfc[g]
             s = _dot(dc[g], x)
             if not rest[g] and s != 0.0:
-                tau = -cap if s > 0.0 else cap
+                tau = -_coulomb(s, cap, 0.0, 0.0)
                 for i in range(nx):
                     xn[i] += dgdf[g, i] * tau
                 sn = _dot(dc[g], xn)

@@ -34,7 +34,8 @@ def _bag(path: Path, seed: int, fc: float = 4.0) -> Path:
     """M = 10 kg, Fv = 20 N s/m, Coulomb fc, simulated with a plain Euler-free exact step."""
     from dvt_identify.data import make_segment
     from dvt_identify.effects import make_effect
-    from dvt_identify.oe import MechanicalStructure, OEModel
+    from dvt_identify.simulation import OEModel
+    from dvt_identify.structures import MechanicalStructure
 
     rng = np.random.default_rng(seed)
     n, dt = 2000, 0.002
@@ -103,3 +104,29 @@ def test_cli_bad_input_one_line(bags: tuple[Path, Path, Path], tmp_path: Path,
     assert r.returncode == 2
     lines = [ln for ln in r.stderr.splitlines() if not ln.startswith("[dvt-identify]")]
     assert lines == [f"dvt-identify: error: {tmp_path / 'nope'}: bag not found"]
+
+
+def test_the_cli_and_the_node_share_the_pipeline() -> None:
+    import ast
+    import importlib.util
+
+    def imports(module: str) -> set[str]:
+        spec = importlib.util.find_spec(module)
+        assert spec is not None and spec.origin is not None
+        tree = ast.parse(Path(spec.origin).read_text())
+        return {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    assert "dvt_identify.pipeline" in imports("dvt_identify.cli")
+    node = imports("dvt_identify.node")
+    assert "dvt_identify.pipeline" in node and "dvt_identify.cli" not in node
+
+
+def test_loop_config_overrides() -> None:
+    from dvt_identify.description import load_description
+    from dvt_identify.pipeline import loop_config
+
+    desc = load_description("dvt")
+    same = loop_config(desc)
+    assert (same.starts, same.fit_decimate, same.augment) == (
+        desc.fit.starts, desc.preprocess.fit_decimate, True)
+    cfg = loop_config(desc, augment=False, starts=0, fit_decimate=3)
+    assert (cfg.starts, cfg.fit_decimate, cfg.augment) == (1, 3, False)

@@ -11,7 +11,7 @@ import yaml
 
 from dvt_identify.description import available_descriptions, load_description, parse_description
 from dvt_identify.errors import DescriptionError
-from dvt_identify.oe import MechanicalStructure, ModelStructure
+from dvt_identify.structures import MechanicalStructure, ModelStructure
 
 
 def _base() -> dict[str, Any]:
@@ -59,7 +59,7 @@ def test_free_two_by_two_description_with_member_vector() -> None:
 
 def test_python_structure_plugin() -> None:
     data = _base()
-    data["structure"] = {"type": "python", "class": "dvt_identify.oe:StateSpaceStructure",
+    data["structure"] = {"type": "python", "class": "dvt_identify.structures:StateSpaceStructure",
                          "options": {"A": [["a", 0.0], [0.0, "a"]], "B": [[1.0, 0.0], [0.0, 1.0]],
                                      "parameters": {"a": -1.0}}}
     d = parse_description(data, "t.yaml")

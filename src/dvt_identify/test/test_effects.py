@@ -9,8 +9,10 @@ from scipy import signal
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.effects import VOCABULARY, Effect, make_effect
 from dvt_identify.errors import DescriptionError
+from dvt_identify.fit import OEFit
 from dvt_identify.loop import score_candidates
-from dvt_identify.oe import MechanicalStructure, OEFit, OEModel
+from dvt_identify.simulation import OEModel
+from dvt_identify.structures import MechanicalStructure
 
 DT = 0.002
 N = 3000

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -14,8 +15,8 @@ from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import Description, parse_description
 from dvt_identify.effects import make_effect
 from dvt_identify.loop import LoopConfig, identify
-from dvt_identify.oe import OEModel
 from dvt_identify.report import build_report, write_report
+from dvt_identify.simulation import OEModel
 
 DT = 0.002
 N = 2500
@@ -85,7 +86,7 @@ def test_nothing_accepted_on_clean_data(tmp_path: Path) -> None:
 def test_coulomb_accepted_and_recovered(tmp_path: Path) -> None:
     desc = description()
     res = identify([make(1, fc=6.0)], [make(2, fc=6.0)], desc,
-                   LoopConfig.from_options(desc.fit, max_effects=1))
+                   replace(LoopConfig.from_options(desc.fit), max_effects=1))
     assert [d.score.effect.name for d in res.accepted] == ["coulomb_friction"]
     assert res.rounds[0][0].effect.name == "coulomb_friction"  # ranked first by its score
     p = res.final.parameters()

@@ -6,11 +6,13 @@ import json
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from dvt_identify.description import load_description
 from dvt_identify.effects import BrakeEngagement, BrakeLockup, make_effect
-from dvt_identify.oe import OEModel
+from dvt_identify.errors import PushError
 from dvt_identify.push import model_node_parameters
+from dvt_identify.simulation import OEModel
 
 
 def _stage(effects, values, rel_std=0.01):  # type: ignore[no-untyped-def]
@@ -45,8 +47,8 @@ def test_band_brakes_and_effects_are_mapped() -> None:
     push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
     p = push.parameters
     assert len(names) == 6
-    np.testing.assert_allclose(p["brake_gain"], [8.5, 9.5, 10.5])
-    np.testing.assert_allclose(p["brake_time_constant"], [0.01, 0.02, 0.03])
+    np.testing.assert_allclose(p["band_gain"], [8.5, 9.5, 10.5])
+    np.testing.assert_allclose(p["band_time_constant"], [0.01, 0.02, 0.03])
     terms = json.loads(p["effects"])
     assert [t["kind"] for t in terms] == ["coulomb"] and terms[0]["Fc"] == 0.07
     assert push.skipped == []
@@ -59,9 +61,9 @@ def test_unidentified_band_is_not_pushed_and_said() -> None:
     values = {e.params[0].name: (8.0 if isinstance(e, BrakeLockup) else 0.02) for e in bands}
     stage, _ = _stage(bands, values)
     push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
-    assert "brake_gain" not in push.parameters
-    assert "brake_time_constant" not in push.parameters
-    assert "brake_gain (band(s) [2, 3] not identified)" in push.skipped
+    assert "band_gain" not in push.parameters
+    assert "band_time_constant" not in push.parameters
+    assert "band_gain (band(s) [2, 3] not identified)" in push.skipped
 
 
 def test_band_values_the_data_did_not_determine_are_not_pushed() -> None:
@@ -72,7 +74,45 @@ def test_band_values_the_data_did_not_determine_are_not_pushed() -> None:
                 and desc.input_names[e.index] == "brake2")
     stage, _ = _stage(bands, values, rel_std={tau2: 0.8})
     push = model_node_parameters(stage, n_model_effects=len(bands))  # type: ignore[arg-type]
-    np.testing.assert_allclose(push.parameters["brake_gain"], [8.0, 8.0, 8.0])
-    assert "brake_time_constant" not in push.parameters
-    assert push.skipped == ["brake_time_constant (band(s) [2] not determined by the data: "
+    np.testing.assert_allclose(push.parameters["band_gain"], [8.0, 8.0, 8.0])
+    assert "band_time_constant" not in push.parameters
+    assert push.skipped == ["band_time_constant (band(s) [2] not determined by the data: "
                             "standard deviation above 50% of the value)"]
+
+
+def test_effects_push_their_declared_terms_and_the_rest_is_said() -> None:
+    desc = load_description("dvt")
+    outs, ins = desc.output_names, desc.input_names
+
+    def eff(name: str, where: str, **opts: object):  # type: ignore[no-untyped-def]
+        return make_effect(name, where, outs, ins, "N m", "rad/s", options=dict(opts),
+                           suffix=f"_{where}")
+    effects = [eff("stribeck_friction", "sun_shaft"), eff("windage", "carrier3"),
+               eff("measurement_delay", "carrier3"), eff("sensor_gain", "carrier3"),
+               eff("backlash", "carrier3")]
+    values = {"Fs_sun_shaft": 0.2, "vs_sun_shaft": 3.0, "Cw_carrier3": 1e-4,
+              "delay_carrier3": 0.004, "gain_carrier3": 0.03, "delta_carrier3": 0.01}
+    stage, _ = _stage(effects, values)
+    push = model_node_parameters(stage)  # type: ignore[arg-type]
+    terms = json.loads(push.parameters["effects"])
+    assert [t["kind"] for t in terms] == ["stribeck", "windage", "delay", "gain"]
+    assert terms[0]["member"] == [1.0, 0.0] and terms[0]["vs"] == 3.0
+    assert terms[3] == {"kind": "gain", "output": 1, "gain": 0.03}
+    assert push.skipped == ["backlash@carrier3 (the model node has no backlash term)"]
+
+
+def test_a_term_the_node_would_refuse_is_not_pushed() -> None:
+    desc = load_description("dvt")
+    gain = make_effect("sensor_gain", "sun_shaft", desc.output_names, desc.input_names)
+    stage, _ = _stage([gain], {"gain": 2.0})  # the identifier admits it, the node does not
+    push = model_node_parameters(stage)  # type: ignore[arg-type]
+    assert json.loads(push.parameters["effects"]) == []
+    (line,) = push.skipped
+    assert line.startswith("sensor_gain@sun_shaft (the model node would refuse it: ")
+    assert "effects[0].gain: 2.0" in line
+
+
+def test_a_mass_matrix_the_node_would_refuse_raises() -> None:
+    stage, _ = _stage([], {"M11": 1e-3, "M12": 0.5, "M22": 1e-3})  # not positive definite
+    with pytest.raises(PushError, match="M"):
+        model_node_parameters(stage)  # type: ignore[arg-type]

@@ -44,6 +44,16 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
     from sensor_msgs.msg import JointState
 
     from dvt_model import rosutil
+    from dvt_model.contract import (
+        CURRENT_NAMES,
+        CURRENTS,
+        DIAGNOSTICS,
+        DIAGNOSTICS_QOS,
+        JOINT_STATES,
+        MODEL_NODE,
+        MODEL_RESIDUAL,
+        SPEED_NAMES,
+    )
 
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
@@ -70,15 +80,16 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
 
     def on_diag(msg: DiagnosticArray) -> None:
         for st in msg.status:
-            if st.name == "dvt_model":
+            if st.name == MODEL_NODE:
                 for kv in st.values:
                     if kv.key == "samples":
                         node_samples["n"] = int(kv.value)
 
-    node.create_subscription(JointState, rosutil.MODEL_RESIDUAL, on_residual, rosutil.SENSOR_QOS)
-    node.create_subscription(DiagnosticArray, rosutil.DIAGNOSTICS, on_diag, 10)
-    pub_js = node.create_publisher(JointState, rosutil.JOINT_STATES, rosutil.SENSOR_QOS)
-    pub_cur = node.create_publisher(JointState, rosutil.CURRENTS, rosutil.SENSOR_QOS)
+    node.create_subscription(JointState, MODEL_RESIDUAL, on_residual, rosutil.SENSOR_QOS)
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diag,
+                             rosutil.qos(DIAGNOSTICS_QOS))
+    pub_js = node.create_publisher(JointState, JOINT_STATES, rosutil.SENSOR_QOS)
+    pub_cur = node.create_publisher(JointState, CURRENTS, rosutil.SENSOR_QOS)
     executor = EventsExecutor(context=ctx)
     executor.add_node(node)
     stop = threading.Event()
@@ -92,7 +103,7 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
     try:
         deadline = time.monotonic() + 30.0
         while (pub_js.get_subscription_count() < 1 or pub_cur.get_subscription_count() < 1
-               or node.count_publishers(rosutil.MODEL_RESIDUAL) < 1):
+               or node.count_publishers(MODEL_RESIDUAL) < 1):
             if time.monotonic() > deadline or proc.poll() is not None:
                 raise RuntimeError("dvt_model_node did not come up within 30 s")
             time.sleep(0.05)
@@ -110,8 +121,8 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
             stamp = base_ns + int(k * period * 1e9)
             t = k * period
             i_m = 4.0 + 2.0 * np.sin(2 * np.pi * t)
-            js = rosutil.joint_state(stamp, rosutil.SPEED_NAMES, velocity=(100.0, 20.0))
-            cur = rosutil.joint_state(stamp, rosutil.CURRENT_NAMES, effort=(i_m, 0.0, 0.0, 0.0))
+            js = rosutil.joint_state(stamp, SPEED_NAMES, velocity=(100.0, 20.0))
+            cur = rosutil.joint_state(stamp, CURRENT_NAMES, effort=(i_m, 0.0, 0.0, 0.0))
             with lock:
                 sent_at[stamp] = time.perf_counter()
             pub_js.publish(js)

@@ -5,6 +5,7 @@ Usage::
     dvt-model describe [--params NAME_OR_FILE] [--gear G] [--json]
     dvt-model compare [--params NAME_OR_FILE] [--against NAME_OR_FILE] [--json]
     dvt-model requirement [--json]
+    dvt-model design [--design FILE.yaml] [--json] [--plots DIR] [--strict]
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from dvt_model.brake import static_torque
+from dvt_model.design import design_report, format_report, load_design, write_plots
 from dvt_model.dynamics import rigid_model
 from dvt_model.errors import DvtModelError
 from dvt_model.kinematics import kinematics, stage_ratio
@@ -88,7 +90,17 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--json", action="store_true")
     r = sub.add_parser("requirement", help="thesis eq. 1.1-1.3: T_max and power of the arm")
     r.add_argument("--json", action="store_true")
+    de = sub.add_parser("design", help="thesis ch. 1-3 recomputed and checked: requirement, "
+                        "gears, shafts, bearings, splines")
+    de.add_argument("--design", default=None, help="design YAML (default: the bundled thesis "
+                    "design, dvt_model/design/thesis.yaml)")
+    de.add_argument("--json", action="store_true", help="print the machine-readable report")
+    de.add_argument("--plots", default=None, metavar="DIR",
+                    help="write the requirement curves (figures 3-4) as PNG into DIR")
+    de.add_argument("--strict", action="store_true", help="exit 1 if a check fails")
     args = parser.parse_args(argv)
+    if args.cmd == "design":
+        return _design(args.design, args.json, args.plots, args.strict)
     try:
         if args.cmd == "describe":
             out = describe(args.params, args.gear)
@@ -108,6 +120,35 @@ def main(argv: list[str] | None = None) -> int:
         for key, value in out.items():
             print(f"{key}: {value}")
     return 0
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with non-finite floats as ``None`` (strict JSON)."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _design(path: str | None, as_json: bool, plots: str | None, strict: bool) -> int:
+    """``dvt-model design``: 0 = report printed (1 with ``--strict`` and a failed check),
+    2 = invalid design file."""
+    try:
+        rep = design_report(load_design(path))
+        written = write_plots(rep, plots) if plots else []
+    except DvtModelError as exc:
+        print(f"dvt-model: {exc}", file=sys.stderr)
+        return 2
+    if as_json:
+        print(json.dumps(_finite(rep), indent=2, allow_nan=False))
+    else:
+        print(format_report(rep))
+        for p in written:
+            print(f"wrote {p}")
+    return 1 if strict and rep["summary"]["failed"] else 0
 
 
 if __name__ == "__main__":

@@ -103,7 +103,7 @@ class TermParam:
         if isinstance(value, bool) or not isinstance(value, int | float) \
                 or not math.isfinite(value):
             raise ContractError(f"{where}.{self.name}: expected a finite number [{self.unit}], "
-                                f"got {value!r}")
+                                f"got {short_repr(value)}")
         v = float(value)
         below = v <= self.lo if self.lo_open else v < self.lo
         above = v >= self.hi if self.hi_open else v > self.hi
@@ -182,11 +182,12 @@ def validate_term(entry: Any, where: str = "effects[0]",
         ContractError: naming ``where``, the field and the value.
     """
     if not isinstance(entry, Mapping):
-        raise ContractError(f"{where}: expected an object, got {entry!r}")
+        raise ContractError(f"{where}: expected an object, got {short_repr(entry)}")
     kind = entry.get("kind")
     spec = EFFECT_TERMS.get(kind) if isinstance(kind, str) else None
     if spec is None:
-        raise ContractError(f"{where}.kind: expected one of {sorted(EFFECT_TERMS)}, got {kind!r}")
+        raise ContractError(f"{where}.kind: expected one of {sorted(EFFECT_TERMS)}, "
+                            f"got {short_repr(kind)}")
     allowed = {"kind", *(p.name for p in spec.params)}
     if spec.member:
         allowed.add("member")
@@ -194,23 +195,23 @@ def validate_term(entry: Any, where: str = "effects[0]",
         allowed.add("output")
     unknown = sorted(set(entry) - allowed)
     if unknown:
-        raise ContractError(f"{where}: unknown field(s) {unknown} for kind {kind!r} "
+        raise ContractError(f"{where}: unknown field(s) {short_repr(unknown)} for kind {kind!r} "
                             f"(expected {sorted(allowed)})")
     out: dict[str, Any] = {"kind": kind}
     if spec.member:
-        raw = entry.get("member")
+        raw: Any = entry.get("member")
         ok = (isinstance(raw, Sequence) and not isinstance(raw, str) and len(raw) == n_outputs
               and all(not isinstance(v, bool) and isinstance(v, int | float)
                       and math.isfinite(v) and abs(v) <= MAX_MEMBER for v in raw))
         if not ok or not any(float(v) != 0.0 for v in raw):
             raise ContractError(f"{where}.member: expected {n_outputs} finite numbers, not all "
-                                f"zero, each |m| <= {MAX_MEMBER:g}, got {raw!r}")
+                                f"zero, each |m| <= {MAX_MEMBER:g}, got {short_repr(raw)}")
         out["member"] = [float(v) for v in raw]
     if spec.output:
         o = entry.get("output")
         if isinstance(o, bool) or not isinstance(o, int) or not 0 <= o < n_outputs:
             raise ContractError(f"{where}.output: expected an output index 0..{n_outputs - 1}, "
-                                f"got {o!r}")
+                                f"got {short_repr(o)}")
         out["output"] = int(o)
     for p in spec.params:
         if p.name in entry:
@@ -262,3 +263,180 @@ def validate_effects(data: str | Sequence[Any] | None, n_outputs: int = len(SPEE
 def effects_json(terms: Sequence[Mapping[str, Any]]) -> str:
     """The ``effects`` parameter text for ``terms``, validated first (what the node takes)."""
     return json.dumps(validate_effects(list(terms)))
+
+
+# ------------------------------------------------------------- model-node parameter schema
+ParamType = Literal["string", "double", "double_array"]
+
+_MAX_REPR = 80
+
+
+def short_repr(value: Any, limit: int = _MAX_REPR) -> str:
+    """``repr(value)`` cut to ``limit`` characters (error messages must stay short even for a
+    10 MB parameter value); a cut repr ends with ``... (N chars)``."""
+    if isinstance(value, str) and len(value) > 4 * limit:
+        return f"{value[:limit]!r}... ({len(value)} chars)"
+    if isinstance(value, list | tuple) and len(value) > limit:
+        head = repr(list(value[:4]))[:-1]
+        return f"{head}, ...] ({len(value)} values)"
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} chars)"
+
+
+@dataclass(frozen=True)
+class NodeParam:
+    """One parameter of the model node: ROS type, unit, meaning, default and admissible values.
+
+    For ``double`` the bounds apply to the value, for ``double_array`` to every element, and
+    ``sizes`` lists the admissible lengths (an empty list always means "not set"; the
+    parameter's own ``description`` says what that falls back to). ``lo_open``/``hi_open``
+    make a bound strict. ``choices`` restricts a string, ``max_chars`` bounds its length.
+    Checks across values (symmetric positive definite M, stable A, ...) are
+    :func:`dvt_model.config.check_parameters`'s.
+    """
+
+    name: str
+    type: ParamType
+    unit: str
+    description: str
+    default: str | float | tuple[float, ...]
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    sizes: tuple[int, ...] = ()
+    choices: tuple[str, ...] = ()
+    max_chars: int = 4096
+
+    @property
+    def admissible(self) -> str:
+        """Human-readable admissible values, e.g. ``4 numbers in [-1000, 1000] [kg m^2]``."""
+        rng = ""
+        if self.lo is not None and self.hi is not None:
+            rng = (f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
+                   f"{')' if self.hi_open else ']'}")
+        unit = f" [{self.unit}]" if self.unit and self.unit != "-" else ""
+        if self.type == "double":
+            return f"a number in {rng}{unit}"
+        if self.type == "double_array":
+            sizes = " or ".join(str(s) for s in self.sizes)
+            return f"an empty list or {sizes} numbers, each in {rng}{unit}"
+        if self.choices:
+            return f"one of {list(self.choices)}"
+        return f"a string of at most {self.max_chars} characters"
+
+    def _in_range(self, v: float) -> bool:
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        return not (self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi))
+
+    def check(self, value: Any) -> str | float | tuple[float, ...]:
+        """The value normalised (str, float or tuple of floats), or :class:`ContractError`
+        whose message starts with the parameter name and gives the value and what is admissible.
+
+        ``None`` (a ROS parameter that is not set) is the default.
+        """
+        if value is None:
+            return self.default
+        bad = ContractError(f"{self.name}: {short_repr(value)} is not admissible: expected "
+                            f"{self.admissible}")
+        if self.type == "string":
+            if not isinstance(value, str):
+                raise bad
+            if len(value) > self.max_chars:
+                raise ContractError(f"{self.name}: {len(value)} characters, at most "
+                                    f"{self.max_chars} allowed")
+            if self.choices and value not in self.choices:
+                raise bad
+            return value
+        if self.type == "double":
+            if isinstance(value, bool) or not isinstance(value, int | float) \
+                    or not math.isfinite(value) or not self._in_range(float(value)):
+                raise bad
+            return float(value)
+        if isinstance(value, str | bytes) or not isinstance(value, Sequence):
+            raise bad
+        n = len(value)
+        if n == 0:
+            return ()
+        if n not in self.sizes:
+            raise ContractError(f"{self.name}: {n} values is not admissible: expected "
+                                f"{self.admissible}")
+        out: list[float] = []
+        for i, v in enumerate(value):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
+                    or not self._in_range(float(v)):
+                raise ContractError(f"{self.name}[{i}]: {short_repr(v)} is not admissible: "
+                                    f"expected {self.admissible}")
+            out.append(float(v))
+        return tuple(out)
+
+
+PARAMS_DEFAULT = "physical"
+LOAD_DEFAULT = "none"
+"""Default joint load of the model node: none (the transmission alone)."""
+M_MIN_EIGENVALUE = 1e-9
+"""Smallest admissible eigenvalue of M [kg m^2]. The smallest inertia the model carries is the
+sun shaft with the motor rotor, about 3e-5 kg m^2 (M's eigenvalues are 4e-4 and 4e-2 kg m^2 in
+the bundled sets); 1e-9 kg m^2 is a 1 mm steel pin. Below it the mechanical time constants
+M/D fall far under the 1 ms sample period and the prediction is numerically meaningless
+(M = 1e-30 I made the node publish NaN)."""
+M_MAX_CONDITION = 1e8
+"""Largest admissible condition number of M (the bundled sets: about 100). Beyond 1e8 a solve
+with M loses more than half of the double precision digits."""
+MATRIX_ENTRY_MAX = 1e3
+"""Largest admissible |entry| of M [kg m^2] and D [N m s] (the bundled sets: below 0.2)."""
+A_ENTRY_MAX = 1e6
+"""Largest admissible |entry| of A [1/s] (the bundled sets: below 100)."""
+B_ENTRY_MAX = 1e6
+"""Largest admissible |entry| of B (the bundled sets with the thesis's inputs: below 1000)."""
+
+MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
+    NodeParam("params", "string", "-",
+              "bundled parameter set (physical, thesis, thesis-derivation) or a YAML file path",
+              PARAMS_DEFAULT),
+    NodeParam("M", "double_array", "kg m^2",
+              "mass matrix override, 4 values row-major, symmetric positive definite "
+              f"(smallest eigenvalue >= {M_MIN_EIGENVALUE:g}, condition number <= "
+              f"{M_MAX_CONDITION:g}); empty = the parameter set's",
+              (), lo=-MATRIX_ENTRY_MAX, hi=MATRIX_ENTRY_MAX, sizes=(4,)),
+    NodeParam("D", "double_array", "N m s",
+              "damping matrix override, 4 values row-major, symmetric positive semi-definite; "
+              "empty = the parameter set's",
+              (), lo=-MATRIX_ENTRY_MAX, hi=MATRIX_ENTRY_MAX, sizes=(4,)),
+    NodeParam("motor_constant", "double", "N m/A",
+              "drive-motor constant K_M; 0 = the parameter set's value", 0.0, lo=0.0, hi=10.0),
+    NodeParam("band_gain", "double_array", "N m/A",
+              "static torque per brake-motor ampere of bands 1-3 (BrakeParams.band_gain), "
+              "3 values > 0; empty = the parameter set's band law",
+              (), lo=0.0, hi=1e3, lo_open=True, sizes=(3,)),
+    NodeParam("band_time_constant", "double_array", "s",
+              "engagement time constant of bands 1-3 (BrakeParams.band_time_constant), 3 values "
+              "> 0; empty = the parameter set's", (), lo=0.0, hi=10.0, lo_open=True, sizes=(3,)),
+    NodeParam("A", "double_array", "1/s",
+              "identified state matrix of the linear model omega' = A omega + B u, 4 values "
+              "row-major, stable (every eigenvalue with negative real part); set together with "
+              "B; an empty A or B clears the linear model (both)",
+              (), lo=-A_ENTRY_MAX, hi=A_ENTRY_MAX, sizes=(4,)),
+    NodeParam("B", "double_array", "rad/s^2 per input unit",
+              "identified input matrix, 4 (2x2: motor current, band-1 torque) or 8 (2x4) values "
+              "row-major; set together with A; empty clears the linear model",
+              (), lo=-B_ENTRY_MAX, hi=B_ENTRY_MAX, sizes=(4, 8)),
+    NodeParam("effects", "string", "-",
+              f"identified effect terms, JSON list of at most {MAX_EFFECT_TERMS} terms "
+              f"(dvt_model.contract.EFFECT_TERMS: {', '.join(EFFECT_TERMS)}); empty = none",
+              "", max_chars=MAX_EFFECTS_JSON),
+    NodeParam("mode", "string", "-",
+              "simulate (free run, output-error residual) or reanchor (re-anchor periodically)",
+              "simulate", choices=("simulate", "reanchor")),
+    NodeParam("reanchor_period", "double", "s", "seconds between re-anchors in reanchor mode",
+              1.0, lo=0.001, hi=3600.0),
+    NodeParam("gap_reset", "double", "s", "a stamp gap longer than this re-anchors the model",
+              0.5, lo=0.001, hi=3600.0),
+    NodeParam("load", "string", "-",
+              "joint load on carrier 3 (dvt_model.load): none, arm (the thesis's 71 in, 200 lb "
+              "arm on a 100:1 stage), arm-payload (with its 240 lb payload) or a load YAML "
+              "path (output_stage: reduction, efficiency; arm: length, mass, payload, "
+              "zero_angle); needs the physical model", LOAD_DEFAULT, max_chars=4096),
+)}
+"""Every parameter of the model node (:data:`MODEL_NODE`), by name, in declaration order."""

@@ -33,6 +33,16 @@ class BagError(DvtModelError, ValueError):
     """
 
 
+class RecordingError(BagError):
+    """Writing, recovering or summarising a recording failed (``dvt-recorder``, ``dvt-bag``,
+    :mod:`dvt_model.recording`); the message names the path, the topic and the reason."""
+
+
 class ContractError(DvtModelError, ValueError):
     """A value violates the interface contract (topic data, a model-node parameter, an effect
     term): the message names the parameter or field, the value and what is admissible."""
+
+
+class RecordingWarning(UserWarning):
+    """A recording was read only in part (e.g. a killed recording's MCAP file read up to its last
+    complete chunk); the message names the file, what was kept and how to repair it."""

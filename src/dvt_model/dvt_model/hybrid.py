@@ -1,6 +1,8 @@
 """Hybrid simulation of the DVT: 2-DOF while no band holds, 1-DOF in a locked gear.
 
-State: ``omega = (omega_sun, omega_carrier3)`` [rad/s], band capacities ``T_cap`` (3,) [N m] and
+State: ``omega = (omega_sun, omega_carrier3)`` [rad/s], the angles ``theta = (theta_sun,
+theta_carrier3)`` [rad] (every other member's angle is the same linear form of them as its
+speed, :mod:`dvt_model.kinematics`, up to a constant), band capacities ``T_cap`` (3,) [N m] and
 which rings are locked. Inputs per step (zero-order hold): drive-motor current [A] and the
 three brake-motor currents [A].
 
@@ -20,13 +22,22 @@ Each step of length ``dt``:
 
 A ring slipping with the band on gets ``-T_cap sign(omega_ring)`` on its generalised speed.
 An optional ``extra_force(omega, t) -> (2,)`` adds generalised torques (the plant's hidden
-effects), evaluated at the step start and held over the step.
+effects), evaluated at the step start and held over the step; so do the angle-dependent ones:
+an optional joint ``load`` (:class:`dvt_model.load.JointLoad`: its reflected inertia is added
+to ``M`` at carrier 3, its gravity torque depends on the carrier-3 angle) and an optional
+``angle_force(theta, omega, t) -> (2,)``.
+
+Angles: the step integrates ``theta`` exactly along the same zero-order-hold solution as the
+speeds (the integral of ``N z`` from the augmented matrix exponential), so ``theta`` is
+consistent with ``omega`` to round-off; a lock (a velocity jump) does not move the angles; a
+fully locked transmission keeps them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,10 +46,13 @@ from scipy.linalg import expm, null_space
 from dvt_model.brake import band_torques, capacity_step
 from dvt_model.dynamics import RigidModel, rigid_model
 from dvt_model.errors import SimulationError
+from dvt_model.load import JointLoad
 from dvt_model.params import BrakeParams, TransmissionParams
 
 Array = NDArray[np.float64]
 ExtraForce = Callable[[Array, float], Array]
+AngleForce = Callable[[Array, Array, float], Array]
+"""``(theta (2,) [rad], omega (2,) [rad/s], t [s]) -> generalised torque (2,) [N m]``."""
 Engagement = Callable[[Array, Array, float, Array], tuple[Array, Array]]
 """``(capacity (3,), static target (3,), dt, ring speeds (3,)) -> (capacity at end, mean)``."""
 LockSet = tuple[bool, bool, bool]
@@ -58,6 +72,7 @@ class HybridState:
         locked: which rings are held by their band.
         holding: torque each locked band applies to hold its ring [N m], shape (3,)
             (0 for unlocked bands).
+        theta: (theta_sun, theta_carrier3) [rad], shape (2,).
     """
 
     t: float
@@ -65,6 +80,7 @@ class HybridState:
     capacity: Array
     locked: LockSet
     holding: Array
+    theta: Array = field(default_factory=lambda: np.zeros(2))
 
     @property
     def gear(self) -> int:
@@ -87,6 +103,7 @@ class SimulationResult:
         capacity: band capacities [N m], shape (N, 3).
         locked: lock state, shape (N, 3), bool.
         gear: gear state per sample (see :attr:`HybridState.gear`), shape (N,).
+        theta: angles (theta_sun, theta_carrier3) at each sample [rad], shape (N, 2).
     """
 
     t: Array
@@ -94,6 +111,7 @@ class SimulationResult:
     capacity: Array
     locked: NDArray[np.bool_]
     gear: NDArray[np.int64]
+    theta: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True)
@@ -102,6 +120,8 @@ class _Mode:
     Mr_inv: Array  # (n, n)
     Phi: Array  # (n, n)
     Gamma: Array  # (n, 2): generalised force held over dt -> delta z
+    Psi: Array  # (n, n): z at the step start -> integral of z over the step
+    Lam: Array  # (n, 2): generalised force held over dt -> integral of z over the step
 
 
 class HybridModel:
@@ -114,15 +134,27 @@ class HybridModel:
         engagement: optional replacement of the first-order band engagement (same contract
             as :func:`dvt_model.brake.capacity_step` plus the ring speeds), e.g. a wet-to-dry
             band in the simulated plant.
+        load: optional joint load on carrier 3 (:class:`~dvt_model.load.JointLoad`): its
+            reflected inertia is added to ``rigid.M`` (``self.rigid`` is the loaded model),
+            its gravity torque is a generalised force depending on the carrier-3 angle.
+        angle_force: optional generalised torque ``f(theta (2,), omega (2,), t) -> (2,)``
+            [N m] depending on the angles (e.g. the plant's position-dependent hidden effects).
     """
 
     def __init__(self, rigid: RigidModel, brake: BrakeParams,
                  extra_force: ExtraForce | None = None,
-                 engagement: Engagement | None = None) -> None:
+                 engagement: Engagement | None = None, *, load: JointLoad | None = None,
+                 angle_force: AngleForce | None = None) -> None:
+        if load is not None:
+            c3 = rigid.kin.vector("carrier3")
+            rigid = dataclasses.replace(
+                rigid, M=rigid.M + load.reflected_inertia * np.outer(c3, c3))
         self.rigid = rigid
         self.brake = brake
         self.extra_force = extra_force
         self.engagement = engagement
+        self.load = load
+        self.angle_force = angle_force
         self._ring = np.asarray(rigid.Q_brake, dtype=float)  # (2, 3) ring speed forms
         self._modes: dict[tuple[LockSet, float], _Mode] = {}
         self._bases: dict[LockSet, tuple[Array, Array, Array]] = {}
@@ -130,9 +162,11 @@ class HybridModel:
 
     @classmethod
     def from_params(cls, params: TransmissionParams, extra_force: ExtraForce | None = None,
-                    engagement: Engagement | None = None) -> HybridModel:
-        """Build from a parameter set."""
-        return cls(rigid_model(params), params.brake, extra_force, engagement)
+                    engagement: Engagement | None = None, *, load: JointLoad | None = None,
+                    angle_force: AngleForce | None = None) -> HybridModel:
+        """Build from a parameter set (optionally with a joint load and angle forces)."""
+        return cls(rigid_model(params), params.brake, extra_force, engagement, load=load,
+                   angle_force=angle_force)
 
     # ------------------------------------------------------------------ helpers
     def ring_speeds(self, omega: ArrayLike) -> Array:
@@ -170,23 +204,41 @@ class HybridModel:
         N, Mr_inv, Ar = self._basis(locked)
         n = N.shape[1]
         if n == 0:
-            return _Mode(N, Mr_inv, np.zeros((0, 0)), np.zeros((0, 2)))
+            return _Mode(N, Mr_inv, np.zeros((0, 0)), np.zeros((0, 2)), np.zeros((0, 0)),
+                         np.zeros((0, 2)))
         Br = Mr_inv @ N.T  # (n, 2)
-        big = np.zeros((n + 2, n + 2))
+        # augmented state (z, f, s) with f' = 0 and s' = z: s(dt) is the integral of z
+        big = np.zeros((2 * n + 2, 2 * n + 2))
         big[:n, :n] = Ar
-        big[:n, n:] = Br
+        big[:n, n:n + 2] = Br
+        big[n + 2:, :n] = np.eye(n)
         e = expm(big * dt)
-        return _Mode(N, Mr_inv, e[:n, :n], e[:n, n:])
+        return _Mode(N, Mr_inv, e[:n, :n], e[:n, n:n + 2], e[n + 2:, :n], e[n + 2:, n:n + 2])
 
     def _forces(self, omega: Array, t: float, i_motor: float, cap: Array,
-                signs: Array, locked: LockSet) -> Array:
+                signs: Array, locked: LockSet, theta: Array) -> Array:
         f = self.rigid.Q_motor * (self.rigid.motor_constant * i_motor)
         for k in range(3):
             if not locked[k] and signs[k] != 0.0 and cap[k] > _ENGAGED:
                 f = f - self._ring[:, k] * (cap[k] * signs[k])
         if self.extra_force is not None:
             f = f + np.asarray(self.extra_force(omega, t), dtype=float)
+        if self.load is not None:
+            f = f + self.load.generalised_force(theta, omega)
+        if self.angle_force is not None:
+            f = f + np.asarray(self.angle_force(theta, omega, t), dtype=float)
         return np.asarray(f)
+
+    def angle_forces(self, theta: ArrayLike, omega: ArrayLike, t: float = 0.0) -> Array:
+        """The angle-dependent generalised torque (load + ``angle_force``) (2,) [N m]."""
+        th = np.asarray(theta, dtype=float).reshape(2)
+        w = np.asarray(omega, dtype=float).reshape(2)
+        f = np.zeros(2)
+        if self.load is not None:
+            f = f + self.load.generalised_force(th, w)
+        if self.angle_force is not None:
+            f = f + np.asarray(self.angle_force(th, w, t), dtype=float)
+        return f
 
     def holding_torques(self, omega: Array, f: Array, locked: LockSet) -> Array:
         """Torque each locked band must apply to keep its ring still [N m], shape (3,).
@@ -218,15 +270,21 @@ class HybridModel:
     # ------------------------------------------------------------------ public API
     def initial_state(self, omega: ArrayLike = (0.0, 0.0), t: float = 0.0,
                       locked: LockSet = (False, False, False),
-                      capacity: ArrayLike = (0.0, 0.0, 0.0)) -> HybridState:
-        """A state at rest or at given speeds (projected onto ``locked``'s constraint)."""
+                      capacity: ArrayLike = (0.0, 0.0, 0.0),
+                      theta: ArrayLike = (0.0, 0.0)) -> HybridState:
+        """A state at rest or at given speeds (projected onto ``locked``'s constraint) and
+        angles ``theta`` (2,) [rad]."""
         w = np.asarray(omega, dtype=float).reshape(2)
         if not np.all(np.isfinite(w)):
             raise SimulationError(f"omega: expected finite speeds, got {w.tolist()}")
+        th = np.asarray(theta, dtype=float).reshape(2)
+        if not np.all(np.isfinite(th)):
+            raise SimulationError(f"theta: expected finite angles, got {th.tolist()}")
         cap = np.asarray(capacity, dtype=float).reshape(3)
         if any(locked):
             w = self._project(w, locked)
-        return HybridState(t=float(t), omega=w, capacity=cap, locked=locked, holding=np.zeros(3))
+        return HybridState(t=float(t), omega=w, capacity=cap, locked=locked, holding=np.zeros(3),
+                           theta=th.copy())
 
     def step(self, state: HybridState, dt: float, i_motor: float,
              i_brake: ArrayLike) -> HybridState:
@@ -236,6 +294,7 @@ class HybridModel:
         ib = np.asarray(i_brake, dtype=float).reshape(3)
         target = band_torques(self.brake, ib)
         omega = state.omega
+        theta = state.theta
         locked = state.locked
         rings = omega @ self._ring
         if self.engagement is None:
@@ -249,7 +308,7 @@ class HybridModel:
         for _ in range(3):
             if not any(locked):
                 break
-            f = self._forces(omega, state.t, i_motor, cap_mean, signs, locked)
+            f = self._forces(omega, state.t, i_motor, cap_mean, signs, locked, theta)
             lam = self.holding_torques(omega, f, locked)
             excess = [abs(lam[k]) / max(hold_cap[k], _ENGAGED) if locked[k] else 0.0
                       for k in range(3)]
@@ -261,55 +320,60 @@ class HybridModel:
         # engagement at rest: a still ring with an engaged band locks if it can be held
         for k in range(3):
             if (not locked[k] and cap_mean[k] > _ENGAGED and abs(rings[k]) < _ZERO_SPEED
-                    and self._can_lock(omega, state.t, i_motor, cap_mean, signs, locked, k)):
+                    and self._can_lock(omega, state.t, i_motor, cap_mean, signs, locked, k,
+                                       theta)):
                 locked = _with(locked, k, True)
                 omega = self._project(omega, locked)
-        omega, locked, signs = self._advance(omega, state.t, dt, i_motor, cap_mean, signs,
-                                             locked, depth=0)
-        f = self._forces(omega, state.t + dt, i_motor, cap_end, signs, locked)
+        omega, locked, signs, dtheta = self._advance(omega, state.t, dt, i_motor, cap_mean,
+                                                     signs, locked, theta, depth=0)
+        theta = theta + dtheta
+        f = self._forces(omega, state.t + dt, i_motor, cap_end, signs, locked, theta)
         holding = self.holding_torques(omega, f, locked)
         return HybridState(t=state.t + dt, omega=omega, capacity=cap_end, locked=locked,
-                           holding=holding)
+                           holding=holding, theta=theta)
 
     def _can_lock(self, omega: Array, t: float, i_motor: float, cap: Array, signs: Array,
-                  locked: LockSet, k: int) -> bool:
+                  locked: LockSet, k: int, theta: Array) -> bool:
         trial = _with(locked, k, True)
         w = self._project(omega, trial)
-        f = self._forces(w, t, i_motor, cap, signs, trial)
+        f = self._forces(w, t, i_motor, cap, signs, trial, theta)
         lam = self.holding_torques(w, f, trial)
         return bool(abs(lam[k]) <= self.brake.static_factor * cap[k])
 
     def _advance(self, omega: Array, t: float, dt: float, i_motor: float, cap: Array,
-                 signs: Array, locked: LockSet, depth: int
-                 ) -> tuple[Array, LockSet, Array]:
+                 signs: Array, locked: LockSet, theta: Array, depth: int
+                 ) -> tuple[Array, LockSet, Array, Array]:
+        """Advance over ``dt``; returns speeds, lock set, slip signs and the angle change."""
         if depth == 0:
             mode = self._mode(locked, dt)
         else:
             mode = self._discretise(locked, dt)
-        f = self._forces(omega, t, i_motor, cap, signs, locked)
+        f = self._forces(omega, t, i_motor, cap, signs, locked, theta)
         if mode.N.shape[1] == 0:
-            return np.zeros(2), locked, signs
+            return np.zeros(2), locked, signs, np.zeros(2)
         z = mode.N.T @ omega
         omega_end = mode.N @ (mode.Phi @ z + mode.Gamma @ f)
+        dtheta = mode.N @ (mode.Psi @ z + mode.Lam @ f)
         if depth >= 4:
-            return omega_end, locked, signs
+            return omega_end, locked, signs, dtheta
         r0 = omega @ self._ring
         r1 = omega_end @ self._ring
-        first, theta = -1, 2.0
+        first, frac = -1, 2.0
         for k in range(3):
             if locked[k] or cap[k] <= _ENGAGED or signs[k] == 0.0:
                 continue
             if r0[k] * signs[k] > 0.0 and r1[k] * signs[k] <= 0.0:
                 th = r0[k] / (r0[k] - r1[k])
-                if th < theta:
-                    first, theta = k, th
+                if th < frac:
+                    first, frac = k, th
         if first < 0:
-            return omega_end, locked, signs
-        t1 = max(theta * dt, 1e-9)
-        w_mid, locked, signs = self._advance(omega, t, t1, i_motor, cap, signs, locked,
-                                             depth + 1)
+            return omega_end, locked, signs, dtheta
+        t1 = max(frac * dt, 1e-9)
+        w_mid, locked, signs, d1 = self._advance(omega, t, t1, i_motor, cap, signs, locked,
+                                                 theta, depth + 1)
+        th_mid = theta + d1
         k = first
-        if self._can_lock(w_mid, t + t1, i_motor, cap, signs, locked, k):
+        if self._can_lock(w_mid, t + t1, i_motor, cap, signs, locked, k, th_mid):
             locked = _with(locked, k, True)
             w_mid = self._project(w_mid, locked)
         else:
@@ -317,8 +381,10 @@ class HybridModel:
             signs[k] = -signs[k]
         rest = dt - t1
         if rest <= 1e-12:
-            return w_mid, locked, signs
-        return self._advance(w_mid, t + t1, rest, i_motor, cap, signs, locked, depth + 1)
+            return w_mid, locked, signs, d1
+        w_end, locked, signs, d2 = self._advance(w_mid, t + t1, rest, i_motor, cap, signs,
+                                                 locked, th_mid, depth + 1)
+        return w_end, locked, signs, d1 + d2
 
     def simulate(self, t: ArrayLike, i_motor: ArrayLike, i_brake: ArrayLike,
                  omega0: ArrayLike = (0.0, 0.0), state0: HybridState | None = None
@@ -329,7 +395,8 @@ class HybridModel:
             t: strictly increasing sample times [s], shape (N,).
             i_motor: drive-motor current [A], shape (N,).
             i_brake: brake-motor currents [A], shape (N, 3).
-            omega0: speeds at ``t[0]`` [rad/s], shape (2,) (ignored if ``state0`` given).
+            omega0: speeds at ``t[0]`` [rad/s], shape (2,) (ignored if ``state0`` given; the
+                angles then start at 0).
 
         Returns:
             Speeds etc. at each ``t`` (row 0 is the initial state).
@@ -356,17 +423,20 @@ class HybridModel:
             raise SimulationError(f"t: not strictly increasing at sample {k + 1}")
         state = state0 if state0 is not None else self.initial_state(omega0, t=float(tt[0]))
         omega = np.empty((n, 2))
+        theta = np.empty((n, 2))
         cap = np.empty((n, 3))
         locked = np.zeros((n, 3), dtype=bool)
         gear = np.zeros(n, dtype=np.int64)
         for k in range(n):
             omega[k] = state.omega
+            theta[k] = state.theta
             cap[k] = state.capacity
             locked[k] = state.locked
             gear[k] = state.gear
             if k + 1 < n:
                 state = self.step(state, float(tt[k + 1] - tt[k]), float(im[k]), ib[k])
-        return SimulationResult(t=tt, omega=omega, capacity=cap, locked=locked, gear=gear)
+        return SimulationResult(t=tt, omega=omega, capacity=cap, locked=locked, gear=gear,
+                                theta=theta)
 
     def kinetic_energy(self, omega: ArrayLike) -> Array:
         """``1/2 omega^T M omega`` [J] for shape (2,) or (N, 2)."""

@@ -1,4 +1,4 @@
-"""Sample-by-sample prediction of the measured speeds (the model node's core; no rclpy).
+"""Sample-by-sample prediction of the measured speeds and angles (the model node's core; no rclpy).
 
 The predictor is fed each measured sample ``(stamp, motor current, brake currents, speeds)``.
 It advances its model from the previous sample's stamp to this one with the previous sample's
@@ -17,19 +17,36 @@ Initialisation and re-anchoring:
 - ``mode="reanchor"``: additionally re-anchors every ``reanchor_period`` seconds, so the
   residual shows the model's short-horizon prediction error and never drifts; useful to watch
   a live machine for hours.
+
+Angles: the model carries ``theta = (theta_sun, theta_carrier3)`` [rad] (the hybrid model
+integrates them exactly with the speeds; the linear model by the trapezoidal rule). When a
+sample carries measured angles (``theta_measured``, the driver's ``position`` from the encoder
+counts) the model's angles are anchored to them at every anchor (and at the first sample that
+carries them), and the prediction includes the predicted angles and the angle residual
+``measured - predicted`` [rad]. Without measured angles the model's angles continue from the
+last anchor (0 at the start), and the prediction carries no angle residual. A joint load's
+gravity torque depends on the carrier-3 angle, so a load is predicted right only from the
+measured angles.
+
+The guard: a prediction is never non-finite or implausibly large. If a model step fails or
+leaves a speed that is not finite or exceeds :data:`OMEGA_GUARD` in magnitude (a diverging
+model, e.g. an identified model that is wrong far from its data), the model is re-anchored to
+the measured sample instead, the event is counted in :attr:`Predictor.guard_reanchors` (the
+node reports it in ``/diagnostics`` with level WARN) and the prediction is the anchored state.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from dvt_model.brake import band_torques, capacity_step
-from dvt_model.errors import SimulationError
+from dvt_model.errors import DvtModelError, SimulationError
 from dvt_model.hybrid import HybridModel, HybridState
 from dvt_model.linear import LinearModel
 from dvt_model.params import BrakeParams
@@ -37,16 +54,28 @@ from dvt_model.params import BrakeParams
 Array = NDArray[np.float64]
 Mode = Literal["simulate", "reanchor"]
 
+SUN_SPEED_LIMIT = 2400.0 * 2.0 * np.pi / 60.0
+"""The machine's safe maximum sun speed, 2400 rpm, in rad/s (the driver refuses faster
+set-points)."""
+OMEGA_GUARD = 100.0 * SUN_SPEED_LIMIT
+"""Largest plausible predicted speed [rad/s], about 25 133 rad/s: 100 times the safe sun speed.
+The carrier-3 speed is a fraction of the sun's, so a real prediction stays far below; a model
+state beyond it has diverged and is re-anchored (see the module docstring)."""
+
 
 @dataclass(frozen=True)
 class Prediction:
-    """Prediction for one sample: speeds and residual [rad/s], shape (2,) each; gear state."""
+    """Prediction for one sample: speeds and residual [rad/s], shape (2,) each; gear state;
+    predicted angles [rad] (2,) always, and the angle residual [rad] (2,) when the sample
+    carried measured angles (else ``None``)."""
 
     stamp: float
     predicted: Array
     residual: Array
     gear: int
     anchored: bool
+    predicted_position: Array = field(default_factory=lambda: np.zeros(2))
+    position_residual: Array | None = None
 
 
 class Predictor:
@@ -80,6 +109,9 @@ class Predictor:
         self._history: deque[tuple[float, Array]] = deque()
         self._state: HybridState | None = None
         self._omega = np.zeros(2)
+        self._theta = np.zeros(2)  # linear model's angles [rad]
+        self._theta_known = False  # the angles are anchored to measured ones
+        self._sq_pos: deque[Array] = deque(maxlen=max(1, rms_window))
         self._cap = np.zeros(3)
         self._last_stamp: float | None = None
         self._last_inputs: tuple[float, Array] = (0.0, np.zeros(3))
@@ -87,6 +119,30 @@ class Predictor:
         self._sq: deque[Array] = deque(maxlen=max(1, rms_window))
         self.samples = 0
         self.anchors = 0
+        self.guard_reanchors = 0
+        """Re-anchors forced by the guard (non-finite or diverging model state)."""
+
+    @property
+    def position_residual_rms(self) -> Array | None:
+        """RMS of the angle residual over the window [rad], shape (2,); ``None`` before any
+        sample with measured angles."""
+        if not self._sq_pos:
+            return None
+        return np.asarray(np.sqrt(np.mean(np.asarray(self._sq_pos), axis=0)))
+
+    @property
+    def theta(self) -> Array:
+        """The model's angles (theta_sun, theta_carrier3) [rad] now, shape (2,)."""
+        if isinstance(self.model, HybridModel):
+            return self._state.theta.copy() if self._state is not None else np.zeros(2)
+        return self._theta.copy()
+
+    def _set_theta(self, theta: Array) -> None:
+        if isinstance(self.model, HybridModel):
+            if self._state is not None:
+                self._state = dataclasses.replace(self._state, theta=theta.copy())
+        else:
+            self._theta = theta.copy()
 
     @property
     def residual_rms(self) -> Array:
@@ -95,71 +151,125 @@ class Predictor:
             return np.zeros(2)
         return np.asarray(np.sqrt(np.mean(np.asarray(self._sq), axis=0)))
 
-    def _anchor(self, stamp: float, omega: Array, i_brake: Array) -> None:
+    def _anchor(self, stamp: float, omega: Array, i_brake: Array,
+                theta: Array | None = None) -> None:
+        """Anchor the model to the measured speeds (and angles, if measured; else the angles
+        continue from the model's present ones)."""
+        th = theta if theta is not None else self.theta
+        if not np.all(np.isfinite(th)):  # a diverged model's angles: start again from 0
+            th = np.zeros(2)
+        self._theta_known = theta is not None
         if isinstance(self.model, HybridModel):
             prev = self._state
             rings = self.model.ring_speeds(omega)
             target = band_torques(self.brake, i_brake)
             still = np.abs(rings) < 0.5
-            cap = np.where(still, target, prev.capacity if prev is not None else 0.0)
-            self._state = self.model.initial_state(omega, t=stamp, capacity=cap)
+            prev_cap = (prev.capacity if prev is not None
+                        and np.all(np.isfinite(prev.capacity)) else 0.0)
+            cap = np.where(still, target, prev_cap)
+            self._state = self.model.initial_state(omega, t=stamp, capacity=cap, theta=th)
         else:
             self._omega = omega.copy()
+            self._theta = th.copy()
         self._anchor_stamp = stamp
         self.anchors += 1
 
+    def _advance(self, dt: float) -> bool:
+        """Advance the model by ``dt`` [s] with the previous inputs held; False (state left
+        unusable) if the step failed or left a speed non-finite or beyond :data:`OMEGA_GUARD`."""
+        im_prev, ib_prev = self._last_inputs
+        try:
+            with np.errstate(all="ignore"):
+                if isinstance(self.model, HybridModel):
+                    if self._state is None:
+                        return False
+                    self._state = self.model.step(self._state, dt, im_prev, ib_prev)
+                    omega = self._state.omega
+                else:
+                    target = band_torques(self.brake, ib_prev)
+                    cap_end, cap_mean = capacity_step(self._cap, target, dt,
+                                                      self.brake.time_constants)
+                    u = np.concatenate([[im_prev], cap_mean])
+                    w0 = self._omega
+                    self._omega = self.model.step(self._omega, dt, u)
+                    self._theta = self._theta + 0.5 * dt * (w0 + self._omega)
+                    self._cap = cap_end
+                    omega = self._omega
+        except (DvtModelError, ArithmeticError, np.linalg.LinAlgError):
+            return False
+        return bool(np.all(np.isfinite(omega)) and np.max(np.abs(omega)) <= OMEGA_GUARD
+                    and np.all(np.isfinite(self.theta)))
+
     def update(self, stamp: float, i_motor: float, i_brake: ArrayLike,
-               omega_measured: ArrayLike) -> Prediction:
+               omega_measured: ArrayLike, theta_measured: ArrayLike | None = None
+               ) -> Prediction:
         """Feed one measured sample; return the prediction at ``stamp`` [s].
 
+        Args:
+            stamp: sample time [s].
+            i_motor: drive-motor current [A].
+            i_brake: brake-motor currents [A], shape (3,).
+            omega_measured: measured (sun, carrier3) speeds [rad/s], shape (2,).
+            theta_measured: measured (sun, carrier3) angles [rad], shape (2,), or ``None``
+                (a sample without positions; a non-finite angle counts as not measured).
+
         Raises:
-            SimulationError: non-finite inputs or measurements (the sample is not used).
+            SimulationError: non-finite inputs or speeds (the sample is not used).
         """
         ib = np.asarray(i_brake, dtype=float).reshape(3)
         meas = np.asarray(omega_measured, dtype=float).reshape(2)
         if not (np.isfinite(i_motor) and np.all(np.isfinite(ib)) and np.all(np.isfinite(meas))
                 and np.isfinite(stamp)):
             raise SimulationError(f"sample at stamp {stamp!r}: non-finite value")
+        th_meas: Array | None = None
+        if theta_measured is not None:
+            th_meas = np.asarray(theta_measured, dtype=float).reshape(2)
+            if not np.all(np.isfinite(th_meas)):
+                th_meas = None
         anchored = False
         last = self._last_stamp
         if last is None or stamp <= last or stamp - last > self.gap_reset or (
                 self.mode == "reanchor" and stamp - self._anchor_stamp >= self.reanchor_period):
-            self._anchor(stamp, meas, ib)
+            self._anchor(stamp, meas, ib, th_meas)
             anchored = True
         else:
-            dt = stamp - last
-            im_prev, ib_prev = self._last_inputs
-            if isinstance(self.model, HybridModel):
-                assert self._state is not None
-                self._state = self.model.step(self._state, dt, im_prev, ib_prev)
-            else:
-                target = band_torques(self.brake, ib_prev)
-                cap_end, cap_mean = capacity_step(self._cap, target, dt,
-                                                  self.brake.time_constants)
-                u = np.concatenate([[im_prev], cap_mean])
-                self._omega = self.model.step(self._omega, dt, u)
-                self._cap = cap_end
+            if not self._advance(stamp - last):
+                self._anchor(stamp, meas, ib, th_meas)
+                self.guard_reanchors += 1
+                anchored = True
+        if th_meas is not None and not self._theta_known:
+            self._set_theta(th_meas)  # positions appeared: anchor the angles to them
+            self._theta_known = True
+            anchored = True
         if isinstance(self.model, HybridModel):
-            assert self._state is not None
+            if self._state is None:
+                raise SimulationError("predictor: no model state after anchoring")
             predicted = self._state.omega.copy()
             gear = self._state.gear
         else:
             predicted = self._omega.copy()
             gear = 0
+        position = self.theta
         if anchored:
             self._history.clear()
         if self.output_delay > 0.0:
             # measured output at t is the machine's state at t - delay (sensor delay)
-            self._history.append((stamp, predicted))
+            self._history.append((stamp, np.concatenate([predicted, position])))
             while (len(self._history) > 1
                    and self._history[1][0] <= stamp - self.output_delay + 1e-9):
                 self._history.popleft()
-            predicted = self._history[0][1].copy()
+            delayed = self._history[0][1]
+            predicted, position = delayed[:2].copy(), delayed[2:].copy()
         predicted = predicted * self.output_gain
         self._last_stamp = stamp
         self._last_inputs = (float(i_motor), ib)
         residual = meas - predicted
         self._sq.append(residual**2)
+        pos_res: Array | None = None
+        if th_meas is not None:
+            pos_res = th_meas - position
+            self._sq_pos.append(pos_res**2)
         self.samples += 1
         return Prediction(stamp=stamp, predicted=predicted, residual=residual, gear=gear,
-                          anchored=anchored)
+                          anchored=anchored, predicted_position=position,
+                          position_residual=pos_res)

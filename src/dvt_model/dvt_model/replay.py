@@ -23,8 +23,10 @@ import rclpy
 from rosbags.rosbag2 import Reader
 
 from dvt_model import rosutil
+from dvt_model.contract import SAMPLE_TOPICS
 
-DEFAULT_TOPICS = (rosutil.JOINT_STATES, rosutil.CURRENTS)
+DEFAULT_TOPICS = SAMPLE_TOPICS
+"""The contract's two topics of one controller sample."""
 
 
 def _msg_class(msgtype: str) -> Any:

@@ -11,17 +11,17 @@ transform::
      {"kind": "delay",    "seconds": 0.004},
      {"kind": "gain",     "output": 0, "gain": 0.02}]
 
-Force laws [N m] acting against the member's motion: Coulomb ``Fc tanh(v/eps) + offset``,
-Stribeck ``Fs exp(-(v/vs)^2) tanh(v/eps)``, windage ``Cw |v| v``, viscous ``b v``; the generalised
-torque is ``-member * law(v)``. ``eps`` (default 0.5 rad/s) smooths the sign for a stable
-sample-rate simulation. ``delay`` shifts the predicted outputs by whole samples, ``gain`` scales
-output ``output`` by ``1 + gain``.
+The schema and its physical admissibility (e.g. ``Fc >= 0``, ``b >= 0``, ``gain > -0.5``, at
+most :data:`~dvt_model.contract.MAX_EFFECT_TERMS` terms) are the contract's
+(:data:`dvt_model.contract.EFFECT_TERMS`, :func:`~dvt_model.contract.validate_effects`); the
+force laws [N m] are :mod:`dvt_model.friction`'s, each acting against the member's motion: the
+generalised torque is ``-member * F(v)``. ``eps`` (default 0.5 rad/s, per term) smooths the
+sign for a stable sample-rate simulation. ``delay`` shifts the predicted outputs by whole
+samples, ``gain`` scales output ``output`` by ``1 + gain``.
 """
 
 from __future__ import annotations
 
-import json
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,37 +29,51 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from dvt_model.errors import ModelError
+from dvt_model import friction
+from dvt_model.contract import SPEED_NAMES, validate_effects
 
 Array = NDArray[np.float64]
-_FORCE_KEYS = {"coulomb": ("Fc",), "stribeck": ("Fs", "vs"), "windage": ("Cw",),
-               "viscous": ("b",)}
+
+
+@dataclass(frozen=True)
+class ForceTerm:
+    """One force term: its kind, member form (2,) and law parameters (contract field names)."""
+
+    kind: str
+    member: Array
+    params: dict[str, float]
+
+    def law(self, v: float) -> float:
+        """The resisting force F(v) [N m] at member speed ``v`` [rad/s]."""
+        p = self.params
+        if self.kind == "coulomb":
+            return float(friction.coulomb(v, p["Fc"], p["offset"], p["eps"]))
+        if self.kind == "stribeck":
+            return float(friction.stribeck(v, p["Fs"], p["vs"], p["eps"]))
+        if self.kind == "windage":
+            return float(friction.windage(v, p["Cw"]))
+        return float(friction.viscous(v, p["b"]))
 
 
 @dataclass(frozen=True)
 class Terms:
-    """Parsed effect terms: force terms and output transforms."""
+    """Parsed effect terms: force terms and output transforms.
 
-    forces: tuple[tuple[str, Array, dict[str, float]], ...] = ()
+    Attributes:
+        forces: the force terms, in the order given.
+        delay: output delay [s].
+        gains: relative output gain error per output (output scaled by ``1 + gain``).
+    """
+
+    forces: tuple[ForceTerm, ...] = ()
     delay: float = 0.0
     gains: tuple[float, float] = (0.0, 0.0)
-    eps: float = 0.5
 
     def extra_force(self, omega: Array, t: float) -> Array:
-        """Generalised torque of all force terms [N m], shape (2,)."""
+        """Generalised torque of all force terms [N m], shape (2,), at speeds ``omega`` (2,)."""
         f = np.zeros(2)
-        for kind, member, p in self.forces:
-            v = float(member @ omega)
-            s = math.tanh(v / self.eps)
-            if kind == "coulomb":
-                law = p["Fc"] * s + p.get("offset", 0.0)
-            elif kind == "stribeck":
-                law = p["Fs"] * math.exp(-((v / p["vs"]) ** 2)) * s
-            elif kind == "windage":
-                law = p["Cw"] * abs(v) * v
-            else:
-                law = p["b"] * v
-            f -= member * law
+        for term in self.forces:
+            f -= term.member * term.law(float(term.member @ omega))
         return f
 
     @property
@@ -67,62 +81,23 @@ class Terms:
         return not self.forces and self.delay == 0.0 and self.gains == (0.0, 0.0)
 
 
-def _num(entry: dict[str, Any], key: str, where: str) -> float:
-    value = entry.get(key)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ModelError(f"{where}.{key}: expected a finite number, got {value!r}")
-    return float(value)
-
-
-def parse_terms(text: str | Sequence[dict[str, Any]]) -> Terms:
-    """Parse the JSON list (or an already-decoded list); '' or '[]' gives no terms.
+def parse_terms(text: str | Sequence[Any] | None) -> Terms:
+    """Parse the ``effects`` JSON list (or an already-decoded list); '', '[]', None: no terms.
 
     Raises:
-        ModelError: naming the entry index and key.
+        ContractError: from :func:`dvt_model.contract.validate_effects`, naming the entry
+            index, the field, the value and what is admissible.
     """
-    if isinstance(text, str):
-        if not text.strip():
-            return Terms()
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ModelError(f"effects: not valid JSON: {exc}") from exc
-    else:
-        data = list(text)
-    if not isinstance(data, list):
-        raise ModelError(f"effects: expected a JSON list, got {type(data).__name__}")
-    forces: list[tuple[str, Array, dict[str, float]]] = []
+    forces: list[ForceTerm] = []
     delay = 0.0
     gains = [0.0, 0.0]
-    eps = 0.5
-    for i, entry in enumerate(data):
-        where = f"effects[{i}]"
-        if not isinstance(entry, dict):
-            raise ModelError(f"{where}: expected an object, got {entry!r}")
-        kind = entry.get("kind")
-        if kind in _FORCE_KEYS:
-            member = np.asarray(entry.get("member"), dtype=float)
-            if member.shape != (2,) or not np.all(np.isfinite(member)):
-                raise ModelError(f"{where}.member: expected 2 finite numbers, got "
-                                 f"{entry.get('member')!r}")
-            p = {k: _num(entry, k, where) for k in _FORCE_KEYS[kind]}
-            if kind == "coulomb" and "offset" in entry:
-                p["offset"] = _num(entry, "offset", where)
-            if kind == "stribeck" and p["vs"] <= 0.0:
-                raise ModelError(f"{where}.vs: expected > 0, got {p['vs']!r}")
-            forces.append((str(kind), member, p))
-            if "eps" in entry:
-                eps = _num(entry, "eps", where)
-        elif kind == "delay":
-            delay = _num(entry, "seconds", where)
-            if not 0.0 <= delay <= 1.0:
-                raise ModelError(f"{where}.seconds: expected 0..1 s, got {delay!r}")
+    for term in validate_effects(text, n_outputs=len(SPEED_NAMES)):
+        kind = term["kind"]
+        if kind == "delay":
+            delay = float(term["seconds"])
         elif kind == "gain":
-            out = entry.get("output")
-            if out not in (0, 1):
-                raise ModelError(f"{where}.output: expected 0 or 1, got {out!r}")
-            gains[int(out)] = _num(entry, "gain", where)
+            gains[int(term["output"])] = float(term["gain"])
         else:
-            raise ModelError(f"{where}.kind: expected one of {sorted(_FORCE_KEYS)} + "
-                             f"['delay', 'gain'], got {kind!r}")
-    return Terms(forces=tuple(forces), delay=delay, gains=(gains[0], gains[1]), eps=eps)
+            params = {k: float(v) for k, v in term.items() if k not in ("kind", "member")}
+            forces.append(ForceTerm(kind, np.asarray(term["member"], dtype=float), params))
+    return Terms(forces=tuple(forces), delay=delay, gains=(gains[0], gains[1]))

@@ -7,7 +7,7 @@ from dvt_model.errors import SimulationError
 from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel
 from dvt_model.params import load_parameters
-from dvt_model.predictor import Predictor
+from dvt_model.predictor import OMEGA_GUARD, Predictor
 
 
 @pytest.fixture(scope="module")
@@ -59,3 +59,30 @@ def test_rejects_non_finite(params):
         p.update(0.0, float("nan"), (0, 0, 0), (0, 0))
     with pytest.raises(SimulationError, match="mode: expected"):
         Predictor(HybridModel.from_params(params), params.brake, mode="bogus")  # type: ignore[arg-type]
+
+
+def test_guard_reanchors_a_diverging_model(params):
+    # an (inadmissible, unchecked) unstable linear model diverges within a few samples
+    lin = LinearModel(np.array([[3000.0, 0.0], [0.0, 3000.0]]), np.zeros((2, 2)))
+    p = Predictor(lin, params.brake)
+    for k in range(200):
+        out = p.update(k * 1e-3, 0.0, (0, 0, 0), (10.0, 2.0))
+        assert np.all(np.isfinite(out.predicted))
+        assert np.max(np.abs(out.predicted)) <= OMEGA_GUARD
+    assert p.guard_reanchors > 0
+    assert p.anchors == 1 + p.guard_reanchors
+
+
+def test_guard_catches_non_finite_state(params):
+    def nan_force(omega, t):
+        return np.array([np.nan, 0.0])
+
+    p = Predictor(HybridModel.from_params(params, extra_force=nan_force), params.brake)
+    for k in range(10):
+        out = p.update(k * 1e-3, 1.0, (0, 0, 0), (5.0, 1.0))
+        assert np.all(np.isfinite(out.predicted)) and np.all(np.isfinite(out.residual))
+    assert p.guard_reanchors == 9
+
+
+def test_guard_bound_is_100_times_the_safe_sun_speed():
+    assert abs(OMEGA_GUARD - 100 * 2400 * 2 * np.pi / 60) < 1e-9

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from dvt_model.errors import ModelError
+from dvt_model.errors import ContractError
 from dvt_model.hybrid import HybridModel
 from dvt_model.params import load_parameters
 from dvt_model.predictor import Predictor
@@ -60,10 +60,32 @@ def test_output_delay_and_gain_in_predictor():
     ('[{"kind": "gain", "output": 3, "gain": 0.1}]', r"effects\[0\]\.output"),
 ])
 def test_bad_terms_refused(text, match):
-    with pytest.raises(ModelError, match=match):
+    with pytest.raises(ContractError, match=match):
         parse_terms(text)
 
 
 def test_empty():
     assert parse_terms("").empty
     assert parse_terms("[]").empty
+
+
+def test_force_laws_are_the_friction_module_laws():
+    from dvt_model import friction
+    terms = parse_terms([
+        {"kind": "stribeck", "member": [0.5, 1.0], "Fs": 0.2, "vs": 5.0, "eps": 0.1},
+        {"kind": "viscous", "member": [0.5, 1.0], "b": 1e-3},
+    ])
+    omega = np.array([4.0, 1.0])
+    v = 0.5 * 4.0 + 1.0
+    law = friction.stribeck(v, 0.2, 5.0, 0.1) + friction.viscous(v, 1e-3)
+    assert np.allclose(terms.extra_force(omega, 0.0), -np.array([0.5, 1.0]) * law)
+
+
+@pytest.mark.parametrize("term", [
+    {"kind": "coulomb", "member": [1, 0], "Fc": -0.1},
+    {"kind": "viscous", "member": [1, 0], "b": -1e-3},
+    {"kind": "gain", "output": 0, "gain": -1.0},
+])
+def test_physically_inadmissible_terms_refused(term):
+    with pytest.raises(ContractError, match=r"effects\[0\]"):
+        parse_terms([term])

@@ -1,1 +1,78 @@
-"""Recordings: the only code that writes, reads, pairs, recovers and summarises them (pure)."""
+"""Recordings: the only code that writes, reads, pairs, recovers and summarises them (pure).
+
+A recording is a rosbag2 directory (``metadata.yaml`` + one ``.mcap`` file, CDR, ROS 2 Jazzy
+types; see :mod:`~dvt_model.recording.layout`). Topic and joint names are the contract's
+(:mod:`dvt_model.contract`). Modules, by concern:
+
+* :mod:`~dvt_model.recording.cdr` - JointState CDR encode/decode, the one :func:`typestore`;
+* :mod:`~dvt_model.recording.mcapindex` - fast reader of indexed MCAP files;
+* :mod:`~dvt_model.recording.read` - :func:`read_topics`, :func:`read_run`, ...;
+* :mod:`~dvt_model.recording.write` - the one writer :class:`BagRecorder` (crash-safe, used live
+  by ``dvt-recorder``) and its offline wrappers :func:`write_bag`, :func:`write_run`,
+  :func:`write_topics`;
+* :mod:`~dvt_model.recording.pairing` - the one stamp pairing (:func:`pair_stamps` offline,
+  :class:`LivePairer` live);
+* :mod:`~dvt_model.recording.recover` - :func:`recover` a killed recording, :func:`is_readable`;
+* :mod:`~dvt_model.recording.summary` - :func:`bag_summary` (``dvt-bag info``).
+
+Errors: :class:`~dvt_model.errors.BagError` (reading, contract violations) and its subclass
+:class:`~dvt_model.errors.RecordingError` (writing, recovering, summarising).
+"""
+
+from dvt_model.errors import BagError, RecordingError
+from dvt_model.recording.cdr import joint_state, joint_state_cdr, message_definition, typestore
+from dvt_model.recording.layout import METADATA_FILE, RECOVER_HINT, TRUTH_FILE
+from dvt_model.recording.pairing import LivePairer, Pairing, pair_stamps
+from dvt_model.recording.read import (
+    Run,
+    TopicSeries,
+    read_run,
+    read_topic_series,
+    read_topics,
+    read_truth,
+    sample_period,
+)
+from dvt_model.recording.recover import RecoverResult, is_readable, recover
+from dvt_model.recording.summary import BagSummary, TopicSummary, bag_summary
+from dvt_model.recording.write import (
+    DEFAULT_FLUSH_PERIOD,
+    BagRecorder,
+    Stream,
+    write_bag,
+    write_run,
+    write_topics,
+)
+
+__all__ = [
+    "DEFAULT_FLUSH_PERIOD",
+    "METADATA_FILE",
+    "RECOVER_HINT",
+    "TRUTH_FILE",
+    "BagError",
+    "BagRecorder",
+    "BagSummary",
+    "LivePairer",
+    "Pairing",
+    "RecordingError",
+    "RecoverResult",
+    "Run",
+    "Stream",
+    "TopicSeries",
+    "TopicSummary",
+    "bag_summary",
+    "is_readable",
+    "joint_state",
+    "joint_state_cdr",
+    "message_definition",
+    "pair_stamps",
+    "read_run",
+    "read_topic_series",
+    "read_topics",
+    "read_truth",
+    "recover",
+    "sample_period",
+    "typestore",
+    "write_bag",
+    "write_run",
+    "write_topics",
+]

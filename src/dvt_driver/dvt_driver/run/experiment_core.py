@@ -1,0 +1,677 @@
+"""Experiments as time-indexed command schedules (pure: no ROS, no I/O).
+
+An :class:`Experiment` is a list of :class:`Step` items ``(t, command)``: at ``t`` seconds after
+the start the runner (:mod:`dvt_driver.run.experiment`) sends ``command`` to the driver, and the
+command holds until the next one of its kind. Commands map one to one to the driver's command
+interface:
+
+=====================  ============================================  ==========================
+command                driver topic / service                        unit
+=====================  ============================================  ==========================
+:class:`MotorCurrent`  ``/dvt/cmd/motor_current`` std_msgs/Float64   A (mode CURRENT)
+:class:`SunSpeed`      ``/dvt/cmd/sun_speed`` std_msgs/Float64       rad/s (mode SPEED)
+:class:`BrakeCurrents` ``/dvt/cmd/brake_currents`` JointState effort  A (brake1..3)
+:class:`Gear`          ``/dvt/cmd/gear`` std_msgs/Int8               0 neutral, 1..3
+:class:`MotorOff`      ``/dvt/driver/stop`` std_srvs/Trigger          -
+=====================  ============================================  ==========================
+
+Named experiments (:data:`EXPERIMENTS`, :func:`build`):
+
+``thesis``
+    The thesis's protocol at its 16 ms serial period (62.5 Hz): the sun shaft is held by the
+    drive's speed loop at 1500, 1600, 2000 and 2400 rpm in turn; at each speed band brake 1 is
+    applied at 0.125 A, then released.
+``shifts``
+    Speed loop at a moderate sun speed, shifting neutral -> 1 -> 2 -> 3 -> 2 -> 1 -> neutral.
+``prbs``
+    Maximum-length PRBS on the motor current in neutral (zero mean: the shafts reverse).
+``multisine``
+    Random-phase multisine on the motor current in neutral (0.2-20 Hz).
+``speed_steps``
+    Sun-speed set-point steps with reversals in neutral.
+``gears_excitation``
+    Each gear in turn, band held, PRBS motor current with direction changes and no brake
+    transient inside the excitation window (the thesis's proposed future work).
+``ident``
+    The identification-grade run: neutral PRBS and multisine (the two-degree-of-freedom
+    system), speed steps up to 2000 rpm (windage), then each gear locked with PRBS (the
+    one-degree-of-freedom systems, backlash and friction reversals), shifts in between
+    (band engagement).
+``ident_shifts``
+    A shift-rich identification run: neutral PRBS and multisine, then twelve band engagements
+    against slipping rings (each gear from four sun speeds), for band-engagement effects.
+``smoke``
+    A 5 s version of ``ident`` (neutral PRBS, gear 1 with PRBS) for end-to-end tests.
+
+Every experiment is deterministic given its seed (:func:`build`), starts in neutral with the
+bands released, ends with the motor stopped and off, and is validated against the driver's
+limits (:class:`Limits`). :attr:`Experiment.phases` labels the time spans (e.g.
+``neutral-prbs``, ``gear2-prbs``) for progress output and provenance.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import max_len_seq
+
+from dvt_driver.errors import ExperimentError
+
+__all__ = [
+    "EXPERIMENTS",
+    "RPM",
+    "BrakeCurrents",
+    "Command",
+    "Experiment",
+    "Gear",
+    "Limits",
+    "MotorCurrent",
+    "MotorOff",
+    "Phase",
+    "Step",
+    "SunSpeed",
+    "available",
+    "build",
+    "multisine_signal",
+    "prbs_signal",
+]
+
+RPM = 2.0 * math.pi / 60.0
+"""One rpm in rad/s."""
+
+MOTOR_CONSTANT = 0.3732
+"""Drive-motor torque constant [N m/A] (thesis)."""
+
+
+# --------------------------------------------------------------------------- commands
+@dataclass(frozen=True)
+class MotorCurrent:
+    """Drive-motor current set-point [A] (driver mode CURRENT)."""
+
+    amps: float
+
+
+@dataclass(frozen=True)
+class SunSpeed:
+    """Sun-shaft speed set-point [rad/s] (driver mode SPEED, the drive's own PI loop)."""
+
+    rad_s: float
+
+
+@dataclass(frozen=True)
+class BrakeCurrents:
+    """Band-brake coil current set-points [A] of brakes 1..3 (direct band control)."""
+
+    amps: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Gear:
+    """Gear selection: 0 neutral (all bands released), 1..3 (the driver's shift sequence)."""
+
+    gear: int
+
+
+@dataclass(frozen=True)
+class MotorOff:
+    """Switch the motor off (the driver's stop service)."""
+
+
+Command = MotorCurrent | SunSpeed | BrakeCurrents | Gear | MotorOff
+
+
+@dataclass(frozen=True)
+class Step:
+    """``command`` sent at ``t`` [s] after the experiment start."""
+
+    t: float
+    command: Command
+
+
+@dataclass(frozen=True)
+class Phase:
+    """A labelled time span ``[start, end)`` [s] of an experiment."""
+
+    start: float
+    end: float
+    label: str
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The driver's command limits an experiment must respect.
+
+    Attributes:
+        motor_current: largest motor current magnitude [A] (12 N m peak / 0.3732 N m/A).
+        sun_speed: largest sun-speed set-point magnitude [rad/s] (2400 rpm).
+        brake_current: largest brake coil current [A]; brake currents are >= 0.
+    """
+
+    motor_current: float = 12.0 / MOTOR_CONSTANT
+    sun_speed: float = 2400.0 * RPM
+    brake_current: float = 6.0
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A time-indexed command schedule.
+
+    Attributes:
+        name: experiment name (a key of :data:`EXPERIMENTS`).
+        description: one line for humans.
+        steps: commands sorted by time (ties keep their order).
+        phases: labelled time spans covering ``[0, duration)``.
+        duration: total length [s]; the last step is at or before it.
+        sample_period_us: the controller sample period the experiment is meant for [µs]
+            (``16000`` for the thesis replica, ``1000`` otherwise).
+        seed: the seed the random signals were drawn with.
+        settings: the builder's keyword arguments (provenance).
+    """
+
+    name: str
+    description: str
+    steps: tuple[Step, ...]
+    phases: tuple[Phase, ...]
+    duration: float
+    sample_period_us: int = 1000
+    seed: int = 0
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    def validate(self, limits: Limits | None = None) -> Experiment:
+        """Check times and every set-point against ``limits``; returns ``self``.
+
+        Raises:
+            ExperimentError: naming the step index, its time, the field and the value.
+        """
+        lim = limits or Limits()
+        if not (math.isfinite(self.duration) and self.duration > 0):
+            raise ExperimentError(f"experiment {self.name!r}: duration: expected a finite "
+                                  f"number > 0 s, got {self.duration!r}")
+        last = 0.0
+        for i, step in enumerate(self.steps):
+            where = f"experiment {self.name!r}: step {i} at t={step.t!r} s"
+            if not (isinstance(step.t, float | int) and math.isfinite(step.t)):
+                raise ExperimentError(f"{where}: time is not a finite number")
+            if step.t < last or step.t > self.duration:
+                raise ExperimentError(f"{where}: time must be within [{last:.6g}, "
+                                      f"{self.duration:.6g}] s (sorted, inside the duration)")
+            last = step.t
+            _check_command(where, step.command, lim)
+        for k, ph in enumerate(self.phases):
+            if not (0.0 <= ph.start < ph.end <= self.duration + 1e-9):
+                raise ExperimentError(f"experiment {self.name!r}: phase {k} ({ph.label!r}): "
+                                      f"expected 0 <= start < end <= {self.duration:.6g} s, "
+                                      f"got [{ph.start:.6g}, {ph.end:.6g})")
+        return self
+
+    def phase_at(self, t: float) -> str:
+        """Label of the phase containing ``t`` [s] (``""`` if none)."""
+        for ph in self.phases:
+            if ph.start <= t < ph.end:
+                return ph.label
+        return ""
+
+    def sample(self, t: NDArray[np.float64] | Sequence[float]) -> dict[str, NDArray[Any]]:
+        """The held set-points at times ``t`` [s], shape (N,) (for plots, tests, simulation).
+
+        Returns a dict of arrays of shape (N,) unless noted: ``mode`` (0 off, 1 current,
+        2 speed), ``setpoint`` (A or rad/s), ``brake`` (N, 3) direct brake currents [A] (the
+        last :class:`BrakeCurrents`), ``gear`` (last :class:`Gear`, -1 before any), ``brake_cmd``
+        (N,) int: 1 where the last brake-related command was a :class:`BrakeCurrents`, 0 where
+        it was a :class:`Gear`.
+        """
+        tt = np.asarray(t, dtype=np.float64)
+        n = tt.shape[0]
+        mode = np.zeros(n, dtype=np.int64)
+        setpoint = np.zeros(n)
+        brake = np.zeros((n, 3))
+        gear = np.full(n, -1, dtype=np.int64)
+        brake_cmd = np.zeros(n, dtype=np.int64)
+        times = np.array([s.t for s in self.steps], dtype=np.float64)
+        # index of the first sample at or after each step (a step applies from its time on)
+        starts = np.searchsorted(tt, times, side="left")
+        for k, step in zip(starts, self.steps, strict=True):
+            c = step.command
+            if isinstance(c, MotorCurrent):
+                mode[k:], setpoint[k:] = 1, c.amps
+            elif isinstance(c, SunSpeed):
+                mode[k:], setpoint[k:] = 2, c.rad_s
+            elif isinstance(c, MotorOff):
+                mode[k:], setpoint[k:] = 0, 0.0
+            elif isinstance(c, BrakeCurrents):
+                brake[k:] = c.amps
+                brake_cmd[k:] = 1
+            else:
+                gear[k:] = c.gear
+                brake_cmd[k:] = 0
+        return {"mode": mode, "setpoint": setpoint, "brake": brake, "gear": gear,
+                "brake_cmd": brake_cmd}
+
+    def to_mapping(self) -> dict[str, Any]:
+        """A YAML/JSON-friendly summary (no individual steps)."""
+        counts: dict[str, int] = {}
+        for s in self.steps:
+            key = type(s.command).__name__
+            counts[key] = counts.get(key, 0) + 1
+        return {
+            "name": self.name,
+            "description": self.description,
+            "seed": self.seed,
+            "duration_s": round(self.duration, 6),
+            "sample_period_us": self.sample_period_us,
+            "settings": {k: _plain(v) for k, v in self.settings.items()},
+            "steps": counts,
+            "phases": [{"start_s": round(p.start, 6), "end_s": round(p.end, 6),
+                        "label": p.label} for p in self.phases],
+        }
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, tuple | list):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _finite(where: str, what: str, v: float) -> float:
+    if isinstance(v, bool) or not isinstance(v, float | int) or not math.isfinite(v):
+        raise ExperimentError(f"{where}: {what}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _check_command(where: str, c: Command, lim: Limits) -> None:
+    if isinstance(c, MotorCurrent):
+        v = _finite(where, "motor current", c.amps)
+        if abs(v) > lim.motor_current:
+            raise ExperimentError(f"{where}: motor current {v:.6g} A exceeds the limit "
+                                  f"{lim.motor_current:.6g} A")
+    elif isinstance(c, SunSpeed):
+        v = _finite(where, "sun speed", c.rad_s)
+        if abs(v) > lim.sun_speed:
+            raise ExperimentError(f"{where}: sun speed {v:.6g} rad/s ({v / RPM:.1f} rpm) "
+                                  f"exceeds the limit {lim.sun_speed:.6g} rad/s "
+                                  f"({lim.sun_speed / RPM:.0f} rpm)")
+    elif isinstance(c, BrakeCurrents):
+        if len(c.amps) != 3:
+            raise ExperimentError(f"{where}: brake currents: expected 3 values, "
+                                  f"got {len(c.amps)}")
+        for j, a in enumerate(c.amps):
+            v = _finite(where, f"brake{j + 1} current", a)
+            if not 0.0 <= v <= lim.brake_current:
+                raise ExperimentError(f"{where}: brake{j + 1} current {v:.6g} A outside "
+                                      f"[0, {lim.brake_current:.6g}] A")
+    elif isinstance(c, Gear):
+        if isinstance(c.gear, bool) or not isinstance(c.gear, int) or c.gear not in (0, 1, 2, 3):
+            raise ExperimentError(f"{where}: gear: expected 0 (neutral), 1, 2 or 3, "
+                                  f"got {c.gear!r}")
+    elif not isinstance(c, MotorOff):
+        raise ExperimentError(f"{where}: unknown command {c!r}")
+
+
+# --------------------------------------------------------------------------- signals
+def _rng(seed: int, stream: int) -> np.random.Generator:
+    """Independent generator per signal of an experiment (stable when others change)."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, int(stream)])
+
+
+def prbs_signal(n_bits: int, order: int, seed: int, stream: int = 0) -> NDArray[np.float64]:
+    """``n_bits`` values of a maximum-length binary sequence in {-1, +1}.
+
+    The sequence has period ``2**order - 1`` (flat spectrum up to about 0.44 / clock period);
+    the seed chooses its starting state.
+    """
+    if not 3 <= order <= 24:
+        raise ExperimentError(f"PRBS order: expected 3..24, got {order}")
+    state = _rng(seed, stream).integers(0, 2, order)
+    if not state.any():
+        state[0] = 1
+    seq, _ = max_len_seq(order, state=state, length=n_bits)
+    return np.asarray(seq, dtype=np.float64) * 2.0 - 1.0
+
+
+def multisine_signal(t: NDArray[np.float64], period: float, f_lo: float, f_hi: float,
+                     seed: int, stream: int = 0) -> NDArray[np.float64]:
+    """Random-phase multisine at times ``t`` [s], shape (N,), normalised to peak 1.
+
+    Harmonics ``k / period`` [Hz] in ``[f_lo, f_hi]``, roughly log-spaced (every harmonic up
+    to 2 Hz, then about 12 per decade) with equal amplitudes; the phases are drawn from the
+    seed, the best crest factor of 20 draws is kept.
+    """
+    if not (period > 0 and 0 < f_lo <= f_hi):
+        raise ExperimentError(f"multisine: expected period > 0 and 0 < f_lo <= f_hi, got "
+                              f"period={period}, f_lo={f_lo}, f_hi={f_hi}")
+    k_lo = max(1, math.ceil(f_lo * period - 1e-9))
+    k_hi = math.floor(f_hi * period + 1e-9)
+    if k_hi < k_lo:
+        raise ExperimentError(f"multisine: no harmonic of 1/{period} s in [{f_lo}, {f_hi}] Hz")
+    ks: list[int] = []
+    for k in range(k_lo, k_hi + 1):
+        f = k / period
+        if f <= 2.0 or not ks or math.log10(f * period / ks[-1]) >= 1.0 / 12.0:
+            ks.append(k)
+    freqs = np.asarray(ks, dtype=np.float64) / period
+    rng = _rng(seed, stream)
+    grid = np.linspace(0.0, period, 2048, endpoint=False)
+    best_crest = math.inf
+    phases = np.zeros(freqs.shape[0])
+    for _ in range(20):
+        ph = np.asarray(rng.uniform(0.0, 2.0 * math.pi, freqs.shape[0]), dtype=np.float64)
+        x = np.cos(2.0 * math.pi * np.outer(grid, freqs) + ph).sum(axis=1)
+        crest = float(np.max(np.abs(x)) / np.sqrt(np.mean(x ** 2)))
+        if crest < best_crest:
+            best_crest = crest
+            phases = ph
+    x_grid = np.cos(2.0 * math.pi * np.outer(grid, freqs) + phases).sum(axis=1)
+    peak = float(np.max(np.abs(x_grid)))
+    y = np.cos(2.0 * math.pi * np.outer(np.asarray(t, dtype=np.float64), freqs)
+               + phases).sum(axis=1)
+    return np.asarray(np.clip(y / peak, -1.0, 1.0), dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- builder
+class _Schedule:
+    """Accumulates steps and phases; times are rounded to the microsecond."""
+
+    def __init__(self) -> None:
+        self.steps: list[Step] = []
+        self.phases: list[Phase] = []
+        self.t = 0.0
+
+    def at(self, t: float, command: Command) -> None:
+        self.steps.append(Step(round(float(t), 6), command))
+
+    def phase(self, label: str, length: float) -> tuple[float, float]:
+        t0, t1 = self.t, round(self.t + length, 6)
+        self.phases.append(Phase(t0, t1, label))
+        self.t = t1
+        return t0, t1
+
+    def build(self, name: str, description: str, sample_period_us: int, seed: int,
+              settings: dict[str, Any]) -> Experiment:
+        steps = sorted(self.steps, key=lambda s: s.t)  # stable: ties keep insertion order
+        return Experiment(name, description, tuple(steps), tuple(self.phases), self.t,
+                          sample_period_us, seed, settings).validate()
+
+
+def _prbs(s: _Schedule, t0: float, t1: float, amplitude: float, offset: float, clock: float,
+          order: int, seed: int, stream: int) -> None:
+    n = max(1, math.ceil((t1 - t0) / clock - 1e-9))
+    bits = prbs_signal(n, order, seed, stream)
+    last = None
+    for i, b in enumerate(bits):
+        level = round(offset + amplitude * float(b), 6)
+        if level != last:
+            s.at(t0 + i * clock, MotorCurrent(level))
+            last = level
+
+
+def _multisine(s: _Schedule, t0: float, t1: float, amplitude: float, offset: float,
+               update: float, period: float, f_lo: float, f_hi: float, seed: int,
+               stream: int) -> None:
+    n = max(1, math.floor((t1 - t0) * update + 1e-9))
+    tt = np.arange(n) / update
+    x = multisine_signal(tt, period, f_lo, f_hi, seed, stream)
+    for ti, xi in zip(tt, x, strict=True):
+        s.at(t0 + float(ti), MotorCurrent(round(offset + amplitude * float(xi), 6)))
+
+
+def _ramp(s: _Schedule, t0: float, w0: float, w1: float, rate: float, update: float) -> float:
+    """Sun-speed ramp from ``w0`` to ``w1`` [rad/s] at ``rate`` [rad/s^2]; returns its end."""
+    length = abs(w1 - w0) / rate
+    n = max(1, math.ceil(length * update))
+    for i in range(1, n + 1):
+        s.at(t0 + (i - 1) / update, SunSpeed(round(w0 + (w1 - w0) * i / n, 6)))
+    return t0 + length
+
+
+def _stop(s: _Schedule, length: float) -> None:
+    """Final phase: speed loop to zero (active braking), neutral, motor off at the end."""
+    t0, t1 = s.phase("stop", length)
+    s.at(t0, SunSpeed(0.0))
+    s.at(t0, Gear(0))
+    s.at(t1, MotorOff())
+
+
+def thesis(seed: int = 0, speeds_rpm: Sequence[float] = (1500.0, 1600.0, 2000.0, 2400.0),
+           brake_current: float = 0.125, settle: float = 3.0, engaged: float = 4.0,
+           released: float = 1.0, ramp_rpm_per_s: float = 1500.0) -> Experiment:
+    """The thesis's protocol: hold the sun at each speed, apply band 1 at ``brake_current``.
+
+    Per speed: ramp and settle (``settle`` s), band 1 at ``brake_current`` [A] for ``engaged``
+    s, band released for ``released`` s. Meant for a 16 ms controller period (62.5 Hz).
+    """
+    s = _Schedule()
+    s.at(0.0, BrakeCurrents((0.0, 0.0, 0.0)))
+    w = 0.0
+    for rpm in speeds_rpm:
+        target = float(rpm) * RPM
+        t0, _ = s.phase(f"{rpm:g}rpm-settle", settle)
+        _ramp(s, t0, w, target, ramp_rpm_per_s * RPM, 100.0)
+        w = target
+        t0, _ = s.phase(f"{rpm:g}rpm-brake1", engaged)
+        s.at(t0, BrakeCurrents((brake_current, 0.0, 0.0)))
+        t0, _ = s.phase(f"{rpm:g}rpm-released", released)
+        s.at(t0, BrakeCurrents((0.0, 0.0, 0.0)))
+    t0, t1 = s.phase("stop", 2.0)
+    _ramp(s, t0, w, 0.0, 2.0 * ramp_rpm_per_s * RPM, 100.0)
+    s.at(t1, MotorOff())
+    return s.build("thesis", "thesis protocol: sun held at each speed, band 1 applied at "
+                   f"{brake_current} A", 16000, seed,
+                   {"speeds_rpm": tuple(speeds_rpm), "brake_current_A": brake_current,
+                    "settle_s": settle, "engaged_s": engaged, "released_s": released})
+
+
+def shifts(seed: int = 0, speed_rpm: float = 600.0, dwell: float = 2.0,
+           sequence: Sequence[int] = (1, 2, 3, 2, 1, 0)) -> Experiment:
+    """Speed loop at ``speed_rpm``; shift through ``sequence`` with ``dwell`` s per gear."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, _ = s.phase("neutral-spinup", dwell)
+    _ramp(s, t0, 0.0, speed_rpm * RPM, 1500.0 * RPM, 100.0)
+    for g in sequence:
+        t0, _ = s.phase(f"shift-gear{g}" if g else "shift-neutral", dwell)
+        s.at(t0, Gear(int(g)))
+    _stop(s, 1.5)
+    return s.build("shifts", f"speed loop at {speed_rpm:g} rpm, shifts through "
+                   f"{list(sequence)}", 1000, seed,
+                   {"speed_rpm": speed_rpm, "dwell_s": dwell, "sequence": tuple(sequence)})
+
+
+def prbs(seed: int = 0, length: float = 12.0, amplitude: float = 2.5, clock: float = 0.03,
+         order: int = 8) -> Experiment:
+    """Zero-mean PRBS of +-``amplitude`` [A] on the motor current in neutral."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, t1 = s.phase("neutral-prbs", length)
+    _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 1)
+    _stop(s, 1.5)
+    return s.build("prbs", f"PRBS +-{amplitude:g} A (clock {clock * 1e3:g} ms) on the motor "
+                   "current in neutral", 1000, seed,
+                   {"length_s": length, "amplitude_A": amplitude, "clock_s": clock,
+                    "order": order})
+
+
+def multisine(seed: int = 0, length: float = 12.0, amplitude: float = 3.0,
+              period: float = 5.0, f_lo: float = 0.2, f_hi: float = 20.0,
+              update: float = 200.0) -> Experiment:
+    """Random-phase multisine (peak ``amplitude`` [A]) on the motor current in neutral."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, t1 = s.phase("neutral-multisine", length)
+    _multisine(s, t0, t1, amplitude, 0.0, update, period, f_lo, f_hi, seed, 2)
+    _stop(s, 1.5)
+    return s.build("multisine", f"multisine {f_lo:g}-{f_hi:g} Hz, peak {amplitude:g} A, on "
+                   "the motor current in neutral", 1000, seed,
+                   {"length_s": length, "amplitude_A": amplitude, "period_s": period,
+                    "f_lo_Hz": f_lo, "f_hi_Hz": f_hi, "update_Hz": update})
+
+
+SPEED_STEPS_RPM = (800.0, -800.0, 1600.0, 400.0, 2000.0, -1200.0)
+
+
+def _speed_steps(s: _Schedule, t0: float, levels_rpm: Sequence[float], dwell: float) -> None:
+    for i, rpm in enumerate(levels_rpm):
+        s.at(t0 + i * dwell, SunSpeed(float(rpm) * RPM))
+
+
+def speed_steps(seed: int = 0, levels_rpm: Sequence[float] = SPEED_STEPS_RPM,
+                dwell: float = 1.5) -> Experiment:
+    """Sun-speed set-point steps (with reversals) in neutral, ``dwell`` s each."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, _ = s.phase("neutral-speed-steps", dwell * len(levels_rpm))
+    _speed_steps(s, t0, levels_rpm, dwell)
+    _stop(s, 1.5)
+    return s.build("speed_steps", f"sun-speed steps {list(levels_rpm)} rpm in neutral", 1000,
+                   seed, {"levels_rpm": tuple(levels_rpm), "dwell_s": dwell})
+
+
+def _gear_blocks(s: _Schedule, gears: Sequence[int], shift: float, excite: float,
+                 amplitude: float, clock: float, order: int, seed: int) -> None:
+    for g in gears:
+        t0, _ = s.phase(f"gear{g}-shift", shift)
+        s.at(t0, MotorCurrent(0.0))
+        s.at(t0, Gear(int(g)))
+        t0, t1 = s.phase(f"gear{g}-prbs", excite)
+        _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 10 + int(g))
+
+
+def gears_excitation(seed: int = 0, gears: Sequence[int] = (1, 2, 3), shift: float = 1.0,
+                     excite: float = 5.0, amplitude: float = 1.5, clock: float = 0.03,
+                     order: int = 8) -> Experiment:
+    """Each gear in turn: shift with the motor at 0 A, then PRBS current, band held.
+
+    The default amplitude (1.5 A, 0.56 N m) stays within what a band at the driver's default
+    engage current (0.5 A, about 4 N m) holds in every gear, gear 3 included.
+    """
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    _gear_blocks(s, gears, shift, excite, amplitude, clock, order, seed)
+    _stop(s, 1.5)
+    return s.build("gears_excitation", f"PRBS +-{amplitude:g} A in gears {list(gears)}, band "
+                   "held (no engagement during excitation)", 1000, seed,
+                   {"gears": tuple(gears), "shift_s": shift, "excite_s": excite,
+                    "amplitude_A": amplitude, "clock_s": clock, "order": order})
+
+
+def _neutral_opening(neutral_prbs: float, neutral_multisine: float, amplitude: float,
+                     clock: float, order: int, seed: int) -> _Schedule:
+    """Schedule opening the identification runs: neutral, PRBS on the motor current
+    (``amplitude`` [A], ``neutral_prbs`` s), then a multisine 0.5 A stronger
+    (``neutral_multisine`` s)."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, t1 = s.phase("neutral-prbs", neutral_prbs)
+    _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, 1)
+    t0, t1 = s.phase("neutral-multisine", neutral_multisine)
+    _multisine(s, t0, t1, amplitude + 0.5, 0.0, 200.0, 5.0, 0.2, 20.0, seed, 2)
+    return s
+
+
+def ident(seed: int = 0, neutral_prbs: float = 6.0, neutral_multisine: float = 5.0,
+          steps_dwell: float = 1.0, shift: float = 0.8, excite: float = 4.0,
+          amplitude: float = 2.5, gear_amplitude: float = 1.5, clock: float = 0.03,
+          order: int = 8) -> Experiment:
+    """Identification-grade run (about 32 s at 1 kHz).
+
+    Neutral PRBS (``neutral_prbs`` s) and multisine (``neutral_multisine`` s), sun-speed
+    steps with reversals up to 2000 rpm (``steps_dwell`` s each), then gears 1, 2, 3: shift
+    (``shift`` s at 0 A) and PRBS with the band held (``excite`` s each), then stop.
+    ``amplitude`` [A] is the neutral PRBS level (the multisine peak is 0.5 A more),
+    ``gear_amplitude`` [A] the in-gear PRBS level (small enough for the band to hold).
+    """
+    s = _neutral_opening(neutral_prbs, neutral_multisine, amplitude, clock, order, seed)
+    t0, _ = s.phase("neutral-speed-steps", steps_dwell * len(SPEED_STEPS_RPM))
+    _speed_steps(s, t0, SPEED_STEPS_RPM, steps_dwell)
+    _gear_blocks(s, (1, 2, 3), shift, excite, gear_amplitude, clock, order, seed)
+    _stop(s, 1.5)
+    return s.build("ident", "identification run: neutral PRBS + multisine, speed steps, "
+                   "gears 1-3 with PRBS", 1000, seed,
+                   {"neutral_prbs_s": neutral_prbs, "neutral_multisine_s": neutral_multisine,
+                    "steps_dwell_s": steps_dwell, "shift_s": shift, "excite_s": excite,
+                    "amplitude_A": amplitude, "gear_amplitude_A": gear_amplitude,
+                    "clock_s": clock, "order": order})
+
+
+def ident_shifts(seed: int = 0, neutral_prbs: float = 5.0, neutral_multisine: float = 4.0,
+                 speeds_rpm: Sequence[float] = (900.0, -700.0, 1200.0, -1000.0),
+                 gears: Sequence[int] = (1, 2, 3), spin: float = 0.8, engaged: float = 0.7,
+                 amplitude: float = 2.5, clock: float = 0.03, order: int = 8) -> Experiment:
+    """Shift-rich identification run (about 29 s at 1 kHz) for band-engagement effects.
+
+    Neutral PRBS (``neutral_prbs`` s) and multisine (``neutral_multisine`` s) as in
+    :func:`ident`, then for each sun speed in ``speeds_rpm`` and each gear in ``gears``: the
+    speed loop spins the shafts up in neutral (``spin`` s), then the motor goes to 0 A and the
+    gear is selected (``engaged`` s): the band engages against a slipping ring (12 engagements
+    and releases with the defaults), then stop.
+    """
+    s = _neutral_opening(neutral_prbs, neutral_multisine, amplitude, clock, order, seed)
+    for rpm in speeds_rpm:
+        for g in gears:
+            t0, _ = s.phase(f"spin-{rpm:g}rpm", spin)
+            s.at(t0, Gear(0))
+            s.at(t0, SunSpeed(float(rpm) * RPM))
+            t0, _ = s.phase(f"gear{g}-engage", engaged)
+            s.at(t0, MotorCurrent(0.0))
+            s.at(t0, Gear(int(g)))
+    _stop(s, 1.5)
+    return s.build("ident_shifts", "shift-rich identification run: neutral PRBS + multisine, "
+                   f"band engagements in gears {list(gears)} from {list(speeds_rpm)} rpm", 1000,
+                   seed, {"neutral_prbs_s": neutral_prbs, "neutral_multisine_s": neutral_multisine,
+                          "speeds_rpm": tuple(speeds_rpm), "gears": tuple(gears),
+                          "spin_s": spin, "engaged_s": engaged, "amplitude_A": amplitude,
+                          "clock_s": clock, "order": order})
+
+
+def smoke(seed: int = 0) -> Experiment:
+    """A 5 s end-to-end check: neutral PRBS, gear 1 with PRBS, stop."""
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    t0, t1 = s.phase("neutral-prbs", 2.0)
+    _prbs(s, t0, t1, 2.0, 0.0, 0.03, 7, seed, 1)
+    _gear_blocks(s, (1,), 0.5, 1.5, 1.5, 0.03, 7, seed)
+    _stop(s, 1.0)
+    return s.build("smoke", "short end-to-end check: neutral PRBS, gear 1 PRBS", 1000, seed,
+                   {})
+
+
+EXPERIMENTS: dict[str, Callable[..., Experiment]] = {
+    "thesis": thesis,
+    "shifts": shifts,
+    "prbs": prbs,
+    "multisine": multisine,
+    "speed_steps": speed_steps,
+    "gears_excitation": gears_excitation,
+    "ident": ident,
+    "ident_shifts": ident_shifts,
+    "smoke": smoke,
+}
+"""Experiment name -> builder ``f(seed=0, **settings) -> Experiment``."""
+
+
+def available() -> list[str]:
+    """Names of the built-in experiments."""
+    return list(EXPERIMENTS)
+
+
+def build(name: str, seed: int = 0, **settings: Any) -> Experiment:
+    """Build the named experiment with ``seed`` (deterministic) and optional settings.
+
+    Raises:
+        ExperimentError: unknown name, bad setting, or a set-point beyond the limits.
+    """
+    if name not in EXPERIMENTS:
+        raise ExperimentError(f"unknown experiment {name!r} (expected one of {available()})")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ExperimentError(f"seed: expected an integer >= 0, got {seed!r}")
+    try:
+        return EXPERIMENTS[name](seed=seed, **settings)
+    except TypeError as exc:
+        raise ExperimentError(f"experiment {name!r}: bad settings {settings}: {exc}") from exc
+

@@ -1,0 +1,109 @@
+"""Candidate effects: named terms the augment loop may add to the simulated model.
+
+Each effect is one class (:mod:`dvt_identify.effects.base` describes the model and the parts an
+effect may have): it declares its vocabulary word, its parameters with their bounds and physical
+constraints (:meth:`~dvt_identify.effects.base.Effect.build`), its simulation and scoring hooks
+and the model-node effect term it pushes
+(:meth:`~dvt_identify.effects.base.Effect.model_term`). :data:`REGISTRY` is the tuple of
+classes; :func:`make_effect` builds the first class of the registry with the given name that
+accepts the ``where`` and options. Adding an effect is adding one class (and its test) to a
+module here and to :data:`REGISTRY`.
+
+Every effect has parameters (:class:`ParamSpec`) with *null* values for which it vanishes. The
+scorer (:mod:`dvt_identify.loop`) uses the output sensitivities at the null values as regressors
+(the Jacobian columns the parameters would add, by finite differences); ``variants`` lists the
+shape parameters it scans (Stribeck speed, periodic order).
+
+Vocabulary (contract): ``coulomb_friction``, ``stribeck_friction``, ``windage``, ``backlash``,
+``measurement_delay``, ``brake_engagement``, ``brake_lockup``, ``sensor_gain``,
+``periodic_disturbance``; project addition: ``asymmetric_friction`` (direction-dependent viscous
+friction ``-dFv |s|``, so ``Fv+ = Fv + dFv``, ``Fv- = Fv - dFv``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from dvt_identify.effects.backlash import Backlash, CompliantOutputBacklash, OutputBacklash
+from dvt_identify.effects.base import (
+    Array,
+    BuildContext,
+    Effect,
+    ParamSpec,
+    ScoringContext,
+    SegmentView,
+    Term,
+)
+from dvt_identify.effects.brakes import BrakeEngagement, BrakeLockup, EngagementDeadTime
+from dvt_identify.effects.friction import (
+    AsymmetricFriction,
+    CoulombFriction,
+    StribeckFriction,
+    Windage,
+)
+from dvt_identify.effects.periodic import PeriodicDisturbance, member_angle
+from dvt_identify.effects.sensors import MeasurementDelay, SensorGain
+from dvt_identify.errors import DescriptionError
+
+REGISTRY: tuple[type[Effect], ...] = (
+    CoulombFriction,
+    StribeckFriction,
+    Windage,
+    CompliantOutputBacklash,  # backlash@state with compliant: true
+    OutputBacklash,           # backlash@state
+    Backlash,                 # backlash@input
+    MeasurementDelay,
+    EngagementDeadTime,       # brake_engagement with dead_time: true
+    BrakeEngagement,
+    BrakeLockup,
+    SensorGain,
+    PeriodicDisturbance,
+    AsymmetricFriction,
+)
+"""Every effect class; for a name shared by several, the first that accepts a ``where`` wins."""
+
+VOCABULARY: tuple[str, ...] = tuple(dict.fromkeys(cls.name for cls in REGISTRY))
+"""The effect names a description may use, in the contract's order."""
+
+
+def make_effect(name: str, where: str, state_names: Sequence[str], input_names: Sequence[str],
+                force_unit: str = "", speed_unit: str = "", member: Sequence[float] | None = None,
+                options: dict[str, object] | None = None, suffix: str = "") -> Effect:
+    """Build a candidate effect: the first class of :data:`REGISTRY` named ``name`` that
+    accepts ``where`` and the options.
+
+    Args:
+        name: effect name from :data:`VOCABULARY`.
+        where: a state/output name (force and output effects), or an input name (``backlash``,
+            ``brake_engagement``); ``brake_lockup`` acts on a member and names its brake input in
+            ``options['input']``.
+        state_names, input_names: the structure's names.
+        force_unit, speed_unit: units for parameter reports.
+        member: explicit member vector over the states, shape (nx,) (default: the unit vector
+            of ``where``).
+        options: effect options (see each class).
+        suffix: appended to parameter names to keep them unique (e.g. ``_sun_shaft``).
+
+    Raises:
+        DescriptionError: unknown effect, state or input name, bad option.
+    """
+    ctx = BuildContext(name=name, where=where, state_names=tuple(state_names),
+                       input_names=tuple(input_names), force_unit=force_unit,
+                       speed_unit=speed_unit,
+                       member=None if member is None else tuple(float(v) for v in member),
+                       options=dict(options or {}), suffix=suffix)
+    named = [cls for cls in REGISTRY if cls.name == name]
+    if not named:
+        raise DescriptionError(f"candidate effect {name!r}: unknown (known: "
+                               f"{', '.join(VOCABULARY)})")
+    cls = next((c for c in named if c.accepts(ctx)), named[-1])
+    return cls.build(ctx)
+
+
+__all__ = [
+    "REGISTRY", "VOCABULARY", "Array", "AsymmetricFriction", "Backlash", "BrakeEngagement",
+    "BrakeLockup", "BuildContext", "CompliantOutputBacklash", "CoulombFriction", "Effect",
+    "EngagementDeadTime", "MeasurementDelay", "OutputBacklash", "ParamSpec",
+    "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "StribeckFriction",
+    "Term", "Windage", "make_effect", "member_angle",
+]

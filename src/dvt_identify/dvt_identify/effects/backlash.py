@@ -1,0 +1,182 @@
+"""Backlash (vocabulary word ``backlash``): a dead zone on an input, lost motion between a member
+and its speed sensor, or play in a compliant spline to a load (option ``compliant: true``).
+
+The registry tries :class:`CompliantOutputBacklash`, then :class:`OutputBacklash` (``where`` a
+state), then :class:`Backlash` (``where`` an input). The model node has no backlash term.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dvt_identify.effects.base import (
+    Array,
+    BuildContext,
+    Effect,
+    ParamSpec,
+    SegmentView,
+    numbers_option,
+)
+from dvt_identify.errors import DescriptionError
+from dvt_identify.simloop import spline_load
+
+_NO_TERM = "the model node has no backlash term"
+
+
+@dataclass
+class Backlash(Effect):
+    """Dead zone of half-width ``delta`` on one input: ``u -> u - clip(u, -delta, delta)``.
+
+    Models transmission backlash/lost motion seen from the input side (no position state is
+    needed). Parameter ``delta`` (>= 0, input unit).
+    """
+
+    name = "backlash"
+    no_term = _NO_TERM
+
+    @classmethod
+    def build(cls, ctx: BuildContext) -> Effect:
+        return cls(where=ctx.where, params=(ParamSpec("delta" + ctx.suffix, 0.0, 0.0, math.inf,
+                                                      "input unit"),),
+                   index=ctx.input_index(), options=dict(ctx.options))
+
+    def input_transform(self, p: Array, u: Array, dt: float) -> Array | None:
+        d = max(float(p[0]), 0.0)
+        out = u.copy()
+        out[:, self.index] = u[:, self.index] - np.clip(u[:, self.index], -d, d)
+        return out
+
+
+@dataclass
+class OutputBacklash(Effect):
+    """Lost motion of half-width ``delta`` between a member and its speed sensor (play
+    operator on the integrated output): after a reversal the sensed shaft stands still until
+    the gap is crossed. ``theta_out`` follows ``theta = integral of x_j`` within
+    ``[theta - delta, theta + delta]``; the measured speed is ``d theta_out / dt``.
+    Parameter ``delta`` (in [0, 1], rad or m).
+    """
+
+    name = "backlash"
+    no_term = _NO_TERM
+
+    @classmethod
+    def accepts(cls, ctx: BuildContext) -> bool:
+        return ctx.at_state
+
+    @classmethod
+    def build(cls, ctx: BuildContext) -> Effect:
+        su = ctx.speed_unit
+        unit = su.split("/")[0] if su else ""
+        return cls(where=ctx.where, params=(ParamSpec("delta" + ctx.suffix, 0.0, 0.0, 1.0, unit,
+                                                      step=2e-3),),
+                   index=ctx.state_index(), options=dict(ctx.options))
+
+    def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
+        d = max(float(p[0]), 0.0)
+        if d == 0.0:
+            return None
+        j = self.index
+        theta = np.concatenate([[0.0], np.cumsum(y[:-1, j]) * dt])
+        out_pos = np.empty_like(theta)
+        pos = 0.0
+        for k, th in enumerate(theta.tolist()):
+            if th - pos > d:
+                pos = th - d
+            elif pos - th > d:
+                pos = th + d
+            out_pos[k] = pos
+        out = y.copy()
+        speed = np.empty(y.shape[0])
+        speed[:-1] = np.diff(out_pos) / dt
+        speed[-1] = y[-1, j] if abs(theta[-1] - out_pos[-1]) >= d else 0.0
+        out[:, j] = speed
+        return out
+
+
+@dataclass
+class CompliantOutputBacklash(Effect):
+    """Free play in a compliant spline between a member and the shaft that carries its speed
+    sensor and a load (vocabulary name ``backlash``; description option ``compliant: true``).
+
+    The sensed shaft (load speed ``w_L``) is driven one way by the model's member speed ``w``
+    through the play ``gap`` and a spring-damper contact: with the twist ``z = theta - theta_L``,
+    ``w_L' = max(0, wn^2 (z - gap/2) + 2 zeta wn (w - w_L))`` for ``z > gap/2`` (mirrored for
+    ``z < -gap/2``, nothing inside the gap), ``z' = w - w_L``; the output is ``w_L`` averaged over
+    the sample interval centred on the sample (the zero-phase anti-alias filter of decimated
+    data leaves no more of a sub-sample impact transient). ``wn`` is the contact frequency of the
+    load on the spline (``sqrt(k / J_load)``) and ``zeta`` its damping ratio. The load's
+    inertia and drag load the member at low frequency like a rigid part of it, which the fitted
+    structure absorbs; the reaction of the impacts on the member is not modelled (one-way).
+
+    Parameters: ``gap`` [rad, total play, in [0, 1]; 0 = rigid: the effect vanishes, compliance
+    included], ``wn`` [rad/s, in [10, 1e4]] and ``zeta`` [1, in [1e-3, 2]] (shape parameters,
+    scanned by the scorer; options ``wn``, ``zeta`` are their starts). The effect is not
+    differentiable at ``gap = 0`` (an impact oscillator), so the scorer's gap regressor is the
+    secant to a probe play (option ``probe_gap``, default 0.01 rad).
+    """
+
+    name = "backlash"
+    no_term = _NO_TERM
+
+    @classmethod
+    def accepts(cls, ctx: BuildContext) -> bool:
+        return ctx.at_state and bool(ctx.options.get("compliant"))
+
+    @classmethod
+    def build(cls, ctx: BuildContext) -> Effect:
+        su, sfx = ctx.speed_unit, ctx.suffix
+        unit = su.split("/")[0] if su else ""
+        wn0 = ctx.number("wn", 400.0)
+        z0 = ctx.number("zeta", 0.15)
+        probe = ctx.number("probe_gap", 0.01)
+        if not (wn0 > 0 and z0 > 0 and probe > 0):
+            raise DescriptionError(f"candidate backlash@{ctx.where} (compliant): wn, zeta and "
+                                   f"probe_gap must be > 0, got {wn0}, {z0}, {probe}")
+        return cls(where=ctx.where, index=ctx.state_index(), options=dict(ctx.options),
+                   params=(ParamSpec("gap" + sfx, 0.0, 0.0, 1.0, unit, step=probe),
+                           ParamSpec("wn" + sfx, wn0, 10.0, 1e4,
+                                     f"1/{su.split('/')[-1]}" if su else "", null=wn0),
+                           ParamSpec("zeta" + sfx, z0, 1e-3, 2.0, "1", null=z0)))
+
+    def label(self) -> str:
+        """``backlash@where(compliant)``: distinct from the rigid play on the same output."""
+        return f"{self.name}@{self.where}(compliant)"
+
+    def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
+        gap, wn, zeta = max(float(p[0]), 0.0), max(float(p[1]), 1e-9), max(float(p[2]), 0.0)
+        if gap == 0.0:
+            return None
+        # sub-steps: wn h <= 0.2 (the explicit contact stays accurate) and an even count
+        sub = max(2, math.ceil(dt * wn / 0.2))
+        sub += sub % 2
+        out = y.copy()
+        out[:, self.index] = spline_load(y[:, self.index], dt, 0.5 * gap, wn * wn,
+                                          2.0 * zeta * wn, sub)
+        return out
+
+    def variants(self, seg: SegmentView) -> list[tuple[str, dict[str, float]]]:
+        """Grid of contact frequency ``wn`` (below the Nyquist frequency of ``seg``: the data
+        cannot show a faster contact), damping ratio and probe play (the gap regressor's
+        secant step); options ``wn_scan``, ``zeta_scan``, ``gap_scan``."""
+        g_name, wn_name, z_name = (s.name for s in self.params)
+        what = f"candidate {self.label()}"
+        def grid(key: str, default: tuple[float, ...]) -> list[float]:
+            return numbers_option(self.options, key, default, what)
+        nyq = math.pi / seg.dt
+        return [(f"{g_name}={g:g},{wn_name}={wn:g},{z_name}={z:g}",
+                 {g_name: g, wn_name: wn, z_name: z})
+                for g in grid("gap_scan", (0.005, 0.01, 0.02, 0.04))
+                for wn in grid("wn_scan", (150.0, 250.0, 350.0, 450.0, 600.0, 1000.0)) if wn < nyq
+                for z in grid("zeta_scan", (0.05, 0.1, 0.2, 0.4))]
+
+    def gain_names(self) -> tuple[str, ...]:
+        return (self.params[0].name,)
+
+    def derived(self, values: dict[str, float]) -> dict[str, float]:
+        wn = values.get(self.params[1].name)
+        if wn is None:
+            return {}
+        return {f"fn{self.params[1].name[2:]}": wn / (2.0 * math.pi)}

@@ -1,0 +1,372 @@
+"""The effect base class, its parameter specs and what an effect is built from.
+
+The model is ``x' = A x + B u_eff + F (sum_e c_e tau_e)``, ``y = h(x)`` with ``C = I``, where
+``F`` maps generalised forces to state derivatives (``M^-1`` for a mechanical structure, ``I`` for
+a free state-space structure) and ``c_e`` (shape (nx,)) is the *member* an effect acts on: its
+speed is ``s_e = c_e . x`` and, by virtual work, a force ``tau_e`` on it is the generalised force
+``c_e tau_e``. An effect is one or more of these parts:
+
+- input transform: ``u -> u_eff`` (backlash as an input dead zone, brake engagement lag);
+- exogenous member force ``tau_e(t)`` known before simulating (Coulomb's constant offset, a periodic
+  disturbance phase-locked to the measured member angle);
+- state-dependent member force evaluated at the start of each step and held over it: a smooth
+  ``tau = g(s)`` (Stribeck, windage, asymmetric viscous friction; the laws of
+  :mod:`dvt_model.friction`, compiled in :mod:`dvt_identify.simloop`) or dry friction with a
+  stick rule and a capacity ``C_k`` (Coulomb, brake lock-up);
+- output transform ``y = h(x)`` (measurement delay, sensor gain).
+
+Every effect is one class (:class:`Effect` subclass) that declares its vocabulary word
+(``name``), how it is built for a ``where`` (:meth:`Effect.accepts`, :meth:`Effect.build`: its
+parameters with bounds and physical constraints), its simulation hooks, its scoring hooks and the
+model-node effect term it pushes (:meth:`Effect.model_term`, checked against
+:mod:`dvt_model.contract`). The registry (:data:`dvt_identify.effects.REGISTRY`) is the tuple of
+classes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dvt_identify.errors import DescriptionError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One estimated parameter.
+
+    Attributes:
+        name: name in reports (e.g. ``M``, ``Fc``).
+        initial: start value.
+        lower, upper: bounds (``-inf``/``inf`` for none); an effect's physical constraint
+            (friction >= 0, play >= 0, ...) is its bound.
+        unit: unit text for reports.
+        null: for an effect parameter, the value at which the effect vanishes.
+        step: finite-difference step for the scoring regressor; ``None`` = automatic.
+    """
+
+    name: str
+    initial: float
+    lower: float = -math.inf
+    upper: float = math.inf
+    unit: str = ""
+    null: float = 0.0
+    step: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.lower <= self.initial <= self.upper:
+            raise DescriptionError(f"parameter {self.name}: initial {self.initial} outside "
+                                   f"bounds [{self.lower}, {self.upper}]")
+
+
+@dataclass(frozen=True)
+class SegmentView:
+    """What an effect may look at: sample time, inputs and measured outputs of one segment.
+
+    Attributes:
+        dt: sample time [s].
+        u: inputs, shape (N, nu).
+        y: measured outputs (= states), shape (N, ny).
+    """
+
+    dt: float
+    u: Array
+    y: Array
+
+
+@dataclass(frozen=True)
+class ScoringContext:
+    """What an effect may use for extra scoring evidence (:meth:`Effect.scoring_evidence`).
+
+    Attributes:
+        views: the scored segments, each as a :class:`SegmentView`.
+        simulated: the baseline simulation of each segment, shape (N, ny) each.
+        weights: output scale of the fit's residuals, shape (ny,).
+        member_residual: the OE residual of the first segment mapped to a force on a member
+            ``c`` (nx,): returns shape (N,) [force unit].
+    """
+
+    views: Sequence[SegmentView]
+    simulated: Sequence[Array]
+    weights: Array
+    member_residual: Callable[[Array], Array]
+
+
+@dataclass(frozen=True)
+class BuildContext:
+    """What an effect is built from: a description's ``{effect, where, ...}`` entry and the
+    structure's names and units.
+
+    Attributes:
+        name: the vocabulary word.
+        where: a state/output name or an input name (or a label, see the effect).
+        state_names, input_names: the structure's names.
+        force_unit, speed_unit: units for parameter reports.
+        member: explicit member vector over the states, or ``None`` (unit vector of ``where``).
+        options: effect options from the description.
+        suffix: appended to parameter names to keep them unique (e.g. ``_sun_shaft``).
+    """
+
+    name: str
+    where: str
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    force_unit: str = ""
+    speed_unit: str = ""
+    member: tuple[float, ...] | None = None
+    options: dict[str, object] = field(default_factory=dict)
+    suffix: str = ""
+
+    @property
+    def at_state(self) -> bool:
+        """Whether ``where`` names a state/output."""
+        return self.where in self.state_names
+
+    def state_index(self, w: str | None = None) -> int:
+        """Index of state ``w`` (default ``where``).
+
+        Raises:
+            DescriptionError: not a state/output.
+        """
+        w = self.where if w is None else w
+        if w not in self.state_names:
+            raise DescriptionError(f"candidate {self.name}: where {w!r} is not a state/output "
+                                   f"(states: {', '.join(self.state_names)})")
+        return self.state_names.index(w)
+
+    def input_index(self, w: str | None = None) -> int:
+        """Index of input ``w`` (default ``where``).
+
+        Raises:
+            DescriptionError: not an input.
+        """
+        w = self.where if w is None else w
+        if w not in self.input_names:
+            raise DescriptionError(f"candidate {self.name}: {w!r} is not an input (inputs: "
+                                   f"{', '.join(self.input_names)})")
+        return self.input_names.index(w)
+
+    def member_vector(self) -> Array:
+        """The member vector, shape (nx,): the explicit one or the unit vector of ``where``.
+
+        Raises:
+            DescriptionError: wrong shape, or ``where`` is not a state.
+        """
+        nx = len(self.state_names)
+        if self.member is not None:
+            c = np.asarray(self.member, dtype=float)
+            if c.shape != (nx,):
+                raise DescriptionError(f"candidate {self.name}@{self.where}: member: expected "
+                                       f"shape ({nx},), got {c.shape}")
+            return c
+        c = np.zeros(nx)
+        c[self.state_index()] = 1.0
+        return c
+
+    def number(self, key: str, default: float) -> float:
+        """Option ``key`` as a float (``default`` when absent).
+
+        Raises:
+            DescriptionError: not a number.
+        """
+        raw = self.options.get(key, default)
+        if isinstance(raw, bool) or not isinstance(raw, int | float | str):
+            raise DescriptionError(f"candidate {self.name}@{self.where}: {key}: expected a "
+                                   f"number, got {raw!r}")
+        try:
+            return float(raw)
+        except ValueError as exc:
+            raise DescriptionError(f"candidate {self.name}@{self.where}: {key}: expected a "
+                                   f"number, got {raw!r}") from exc
+
+    def numbers(self, key: str, default: Sequence[float] = ()) -> list[float]:
+        """Option ``key`` as a list of floats (``default`` when absent or empty).
+
+        Raises:
+            DescriptionError: not a list of numbers.
+        """
+        return numbers_option(self.options, key, default, f"candidate {self.name}@{self.where}")
+
+
+def numbers_option(options: dict[str, object], key: str, default: Sequence[float],
+                   what: str) -> list[float]:
+    """``options[key]`` as a list of floats (``default`` when absent or empty).
+
+    Raises:
+        DescriptionError: naming ``what`` and ``key``: not a list of numbers.
+    """
+    raw = options.get(key)
+    if not raw:
+        return [float(v) for v in default]
+    if not isinstance(raw, list | tuple):
+        raise DescriptionError(f"{what}: {key}: expected a list of numbers, got {raw!r}")
+    try:
+        return [float(v) for v in raw]
+    except (TypeError, ValueError) as exc:
+        raise DescriptionError(f"{what}: {key}: expected a list of numbers, got {raw!r}") from exc
+
+
+Term = dict[str, Any]
+"""A model-node effect term (:data:`dvt_model.contract.EFFECT_TERMS`)."""
+
+
+@dataclass
+class Effect:
+    """Base class of a candidate effect; subclasses override the parts they have.
+
+    Class attributes (declared by each effect):
+        name: the vocabulary word of the description (several classes may share one; the
+            registry picks the first whose :meth:`accepts` is true).
+        state_dependent: whether the effect adds a state-dependent member force.
+        band_parameter: the model node's per-band parameter that a baseline instance on an
+            input ``brake1..3`` sets with its first parameter (which carries the same name).
+        no_term: why the model node cannot represent the effect (``""``: it can,
+            see :meth:`model_term`).
+
+    Attributes:
+        where: human-readable place (member/state, input or output name).
+        params: parameter specs (names already made unique by the description).
+        member: member vector c, shape (nx,), for force effects; else ``None``.
+        index: input or output index for input/output effects; else -1.
+        options: effect-specific options from the description.
+    """
+
+    name: ClassVar[str] = "effect"
+    state_dependent: ClassVar[bool] = False
+    band_parameter: ClassVar[str | None] = None
+    no_term: ClassVar[str] = "the model node has no such term"
+    where: str = ""
+    params: tuple[ParamSpec, ...] = ()
+    member: Array | None = None
+    index: int = -1
+    options: dict[str, object] = field(default_factory=dict)
+
+    # -- construction ----------------------------------------------------------------------
+    @classmethod
+    def accepts(cls, ctx: BuildContext) -> bool:
+        """Whether this class is the one built for ``ctx`` (among those sharing its name)."""
+        return True
+
+    @classmethod
+    def build(cls, ctx: BuildContext) -> Effect:  # pragma: no cover - every effect overrides
+        """The effect for ``ctx`` with its parameter specs.
+
+        Raises:
+            DescriptionError: bad where, member or options (naming them).
+        """
+        raise NotImplementedError
+
+    # -- parts ---------------------------------------------------------------------------
+    def input_transform(self, p: Array, u: Array, dt: float) -> Array | None:
+        """Transformed inputs, shape (N, nu), or ``None`` when this effect has no input part."""
+        return None
+
+    def exogenous_force(self, p: Array, seg: SegmentView) -> Array | None:
+        """Member force known before simulation, shape (N,), or ``None``."""
+        return None
+
+    def smooth_law(self, p: Array) -> tuple[int, float, float] | None:
+        """A coded smooth member force ``(kind, p0, p1)`` (:mod:`dvt_identify.simloop`; the
+        simulation compiles these), or ``None``."""
+        return None
+
+    def dry_capacity(self, p: Array, seg: SegmentView) -> Array | float | None:
+        """Dry-friction capacity (>= 0): a number or shape (N,); ``None`` for no dry part."""
+        return None
+
+    def breakaway(self, p: Array) -> float:
+        """Extra holding capacity at rest added to the member's dry friction."""
+        return 0.0
+
+    def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
+        """Transformed outputs, shape (N, ny), or ``None``."""
+        return None
+
+    # -- the model node ------------------------------------------------------------------
+    def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
+        """The model node's effect term for parameters ``p`` (not yet validated; the push
+        checks it with :func:`dvt_model.contract.validate_term`), or ``None`` when the node
+        cannot represent this effect (the reason: :meth:`why_no_term`).
+
+        Args:
+            p: this effect's parameters, shape (n_params,).
+            outputs: the model's output (state) names, in order.
+        """
+        return None
+
+    def why_no_term(self, outputs: Sequence[str]) -> str:
+        """Why :meth:`model_term` gives ``None`` for these outputs."""
+        return self.no_term
+
+    def member_list(self) -> list[float]:
+        """The member vector as a list of floats.
+
+        Raises:
+            DescriptionError: the effect has no member.
+        """
+        return [float(v) for v in self.require_member()]
+
+    # -- scoring helpers -----------------------------------------------------------------
+    def variants(self, seg: SegmentView) -> list[tuple[str, dict[str, float]]]:
+        """Shape-parameter values the scorer tries: (label, {param name: value})."""
+        return [("", {})]
+
+    def gain_names(self) -> tuple[str, ...]:
+        """Parameters whose sensitivities at the null values are the scoring regressors."""
+        return tuple(s.name for s in self.params)
+
+    def scoring_step(self, name: str, dt: float) -> float | None:
+        """A fixed finite-difference step for the scoring regressor of parameter ``name``
+        (``None``: the scorer chooses, from a probe or the spec's ``step``)."""
+        return None
+
+    def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
+        """Extra evidence for the report and better start values (parameter name -> value)."""
+        return {}, {}
+
+    def fixed_names(self) -> tuple[str, ...]:
+        """Parameters held fixed while fitting."""
+        return ()
+
+    def derived(self, values: dict[str, float]) -> dict[str, float]:
+        """Derived physical figures given all fitted parameters by name (may be empty)."""
+        return {}
+
+    def label(self) -> str:
+        """``name@where``."""
+        return f"{self.name}@{self.where}"
+
+    def with_initial(self, values: dict[str, float]) -> Effect:
+        """Copy with new initial values (clipped into the bounds)."""
+        new = tuple(replace(s, initial=float(np.clip(values.get(s.name, s.initial), s.lower,
+                                                      s.upper)))
+                    for s in self.params)
+        return replace(self, params=new)
+
+    def null_vector(self) -> Array:
+        """Parameter values at which the effect vanishes, shape (n_params,)."""
+        return np.array([s.null for s in self.params], dtype=float)
+
+    def pindex(self, name: str) -> int:
+        """Index of parameter ``name``."""
+        for i, s in enumerate(self.params):
+            if s.name == name:
+                return i
+        raise KeyError(name)
+
+    def require_member(self) -> Array:
+        """The member vector, shape (nx,).
+
+        Raises:
+            DescriptionError: the effect was built without one.
+        """
+        if self.member is None:
+            raise DescriptionError(f"{self.label()}: needs a member vector")
+        return self.member

@@ -1,0 +1,179 @@
+"""The identification pipeline used by ``dvt-identify`` (:mod:`dvt_identify.cli`) and the
+identify node (:mod:`dvt_identify.node`); pure, no rclpy.
+
+Steps (:func:`run`): load the description; read, check and pre-process the estimation and
+validation bags into segments (:func:`load_segments`); drop the model effects whose input never
+varies in the estimation data (:func:`drop_unexcited_model_effects`); check the excitation;
+fit the baseline and run the augment loop (:func:`dvt_identify.loop.identify`); write the
+report. :func:`model_push` builds the model node's parameters from a result.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from dvt_identify.data import (
+    DataWarning,
+    Segment,
+    _constant,
+    check_excitation,
+    decimate,
+    load_bag_segments,
+    lowpass,
+)
+from dvt_identify.description import Description, load_description
+from dvt_identify.errors import DataError
+from dvt_identify.fit import Progress, stderr_progress
+from dvt_identify.loop import IdentificationResult, LoopConfig, identify
+from dvt_identify.push import Push, model_node_parameters
+from dvt_identify.report import write_report
+
+
+def _quiet(_msg: str) -> None:
+    return None
+
+
+def load_segments(bags: Sequence[str | Path], desc: Description) -> list[Segment]:
+    """Read, check and pre-process ``bags`` as the description says (a bag split at long gaps
+    gives several segments).
+
+    Raises:
+        DataError: naming the bag, topic and problem.
+    """
+    out = []
+    for bag in bags:
+        for seg in load_bag_segments(bag, desc.inputs, desc.outputs, desc.checks):
+            lp = desc.preprocess.lowpass
+            if lp:
+                seg = lowpass(seg, float(lp["cutoff_hz"]), int(lp.get("order", 4)),
+                              bool(lp.get("zero_phase", True)))
+            seg = decimate(seg, desc.preprocess.decimate)
+            out.append(seg)
+    return out
+
+
+def used_inputs(desc: Description) -> set[str]:
+    """Inputs the baseline model uses: a non-zero column of the structure's ``B`` or an input
+    of a model effect."""
+    structure = desc.structure
+    theta = np.array([p.initial for p in structure.params], dtype=float)
+    _, B, _ = structure.matrices(theta)
+    names = set(desc.input_names)
+    used = {n for j, n in enumerate(desc.input_names) if np.any(B[:, j] != 0.0)}
+    for eff in desc.make_model_effects():
+        if 0 <= eff.index < len(desc.input_names):
+            used.add(desc.input_names[eff.index])
+    return used & names
+
+
+def drop_unexcited_model_effects(desc: Description, est: Sequence[Segment]
+                                 ) -> tuple[Description, list[str]]:
+    """Remove model effects whose input is constant in every estimation segment (e.g. the
+    band of a gear the run never used): their parameters could not be identified.
+
+    Returns:
+        The description without them and their labels.
+    """
+    keep, dropped = [], []
+    for spec, eff in zip(desc.model_effects, desc.make_model_effects(), strict=True):
+        j = eff.index
+        if 0 <= j < len(desc.input_names) and all(
+                _constant(seg.u[:, j], desc.checks) for seg in est):
+            dropped.append(eff.label())
+        else:
+            keep.append(spec)
+    return replace(desc, model_effects=tuple(keep)), dropped
+
+
+def _read(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], desc: Description
+          ) -> tuple[list[Segment], list[Segment]]:
+    """Estimation and validation segments; the data warnings (unused parts of a recording)
+    are always shown on stderr, also when quiet.
+
+    Raises:
+        DataError: a bag used for both, or unusable data.
+    """
+    est_paths = [str(Path(b).resolve()) for b in est_bags]
+    for b in val_bags:
+        if str(Path(b).resolve()) in est_paths:
+            raise DataError(f"{b}: used for both estimation and validation; validation must be "
+                            "separate data")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        est = load_segments(est_bags, desc)
+        val = load_segments(val_bags, desc)
+    for w in caught:
+        if issubclass(w.category, DataWarning):
+            print(f"[dvt-identify] warning: {w.message}", file=sys.stderr, flush=True)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return est, val
+
+
+def loop_config(desc: Description, augment: bool = True, starts: int | None = None,
+                fit_decimate: int | None = None) -> LoopConfig:
+    """The description's loop options with the caller's overrides (``None``: keep)."""
+    cfg = LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate)
+    return replace(cfg, augment=augment,
+                   starts=cfg.starts if starts is None else max(1, starts),
+                   fit_decimate=cfg.fit_decimate if fit_decimate is None
+                   else max(1, fit_decimate))
+
+
+def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir: str | Path,
+        description: str | None = None, augment: bool = True, starts: int | None = None,
+        fit_decimate: int | None = None, quiet: bool = False, plots: bool = True,
+        progress: Progress | None = None) -> IdentificationResult:
+    """The whole pipeline; returns the result after writing the report to ``out_dir`` (with
+    its PNG plots unless ``plots`` is false).
+
+    Args:
+        est_bags, val_bags: estimation and validation bag directories (distinct).
+        out_dir: report directory.
+        description: description file or bundled name (``None``: the default, ``dvt``).
+        augment: run the augment loop after the baseline.
+        starts, fit_decimate: overrides of the description's (``None``: keep).
+        quiet: no progress lines (data warnings are still shown).
+        plots: write the PNG plots.
+        progress: receives the progress lines (default: stderr).
+
+    Raises:
+        DvtIdentifyError: bad input (description, bags, data).
+    """
+    t0 = time.monotonic()
+    say = _quiet if quiet else (progress or stderr_progress)
+    desc = load_description(description)
+    say(f"description {desc.name} ({desc.source}); reading {len(est_bags)} estimation and "
+        f"{len(val_bags)} validation bag(s)")
+    est, val = _read(est_bags, val_bags, desc)
+    desc, dropped = drop_unexcited_model_effects(desc, est)
+    for label in dropped:
+        say(f"model effect {label} dropped: its input never varies in the estimation data")
+    check_excitation(est, desc.checks,
+                     {s.name: f"{s.topic} {s.field}[{s.joint}]" for s in desc.inputs},
+                     used=used_inputs(desc))
+    say(f"data read in {time.monotonic() - t0:.1f} s: "
+        + ", ".join(f"{Path(s.name).name} {s.n} samples at {1 / s.dt:g} Hz" for s in est + val))
+    cfg = loop_config(desc, augment, starts, fit_decimate)
+    result = identify(est, val, desc, cfg, say)
+    paths = write_report(result, out_dir, plots_enabled=plots)
+    say(f"report written: {paths['json']} and {paths['md']} ({time.monotonic() - t0:.1f} s)")
+    return result
+
+
+def model_push(result: IdentificationResult) -> Push:
+    """The model node's parameters for the result's final model (the description's model
+    effects, as kept, are the node's band model).
+
+    Raises:
+        PushError: not the DVT structure, or a value the node would refuse.
+    """
+    n_model = len(result.description.make_model_effects())
+    return model_node_parameters(result.final, n_model)

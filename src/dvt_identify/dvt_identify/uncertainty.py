@@ -1,0 +1,319 @@
+"""Uncertainty that holds for coloured residuals, and tests that scale with the noise (pure).
+
+An output-error fit leaves residuals that are coloured: the simulated output carries the model's
+error through its own dynamics, and real sensors and unmodelled effects add structure. The
+textbook covariance ``s^2 (J^T J)^-1`` assumes white residuals and is then optimistic by the
+factor by which the residual's long-run variance exceeds its variance (10x was measured).
+
+This module gives, from the fit's Jacobian and residual alone (no refit):
+
+- :func:`sandwich_covariance`: the heteroscedasticity-and-autocorrelation-consistent (HAC)
+  "sandwich" ``H^-1 S H^-1`` with ``H = J^T J`` and ``S`` the long-run covariance of the score
+  ``g_t = J_t^T r_t`` (the rows of one time step summed), estimated with a Bartlett lag window
+  (Newey and West 1987) whose bandwidth follows Andrews' (1991) AR(1) plug-in rule. Each
+  segment's scores are windowed on their own (no lag crosses a segment boundary). It is the
+  covariance of the quasi-maximum-likelihood estimate, valid under model error for the
+  best-fitting parameters of the structure.
+- :func:`diebold_mariano`: whether one model's simulation error on validation data is smaller
+  than another's, with the HAC variance of the mean loss difference (Diebold and Mariano 1995):
+  as strict as the noise on clean data, and it lets a small but consistent gain through.
+- :func:`noise_floor`: the white (sensor) noise level of a residual from its first difference,
+  and the share of the residual variance that is structured (what a model could still explain).
+
+Layout convention: a residual vector is the concatenation of the segments' ``(N_s, ny)`` residual
+arrays, each raveled row-major (time-major), as :class:`dvt_identify` fits build it; ``jac`` has
+one row per residual entry.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import norm
+
+from dvt_identify.errors import DvtIdentifyError
+
+Array = NDArray[np.float64]
+
+SINGULAR_RTOL = 1e-10
+"""Singular values of ``J`` below this fraction of the largest are treated as zero: the data do
+not determine that direction and its parameters get an infinite standard deviation."""
+
+
+class UncertaintyError(DvtIdentifyError, ValueError):
+    """Inconsistent shapes given to an uncertainty computation (the message gives them)."""
+
+
+def _check(jac: ArrayLike, residual: ArrayLike, ny: int, seg_sizes: Sequence[int]
+           ) -> tuple[Array, Array]:
+    J = np.asarray(jac, dtype=float)
+    r = np.asarray(residual, dtype=float).reshape(-1)
+    if J.ndim != 2 or J.shape[0] != r.size:
+        raise UncertaintyError(f"jac: expected shape ({r.size}, p) for a residual of {r.size} "
+                               f"entries, got {J.shape}")
+    if ny < 1:
+        raise UncertaintyError(f"ny: expected >= 1 output, got {ny}")
+    total = int(sum(int(n) for n in seg_sizes)) * ny
+    if total != r.size:
+        raise UncertaintyError(f"seg_sizes: {list(seg_sizes)} samples x {ny} outputs = {total} "
+                               f"residual entries, but the residual has {r.size}")
+    return J, r
+
+
+def scores(jac: ArrayLike, residual: ArrayLike, ny: int, seg_sizes: Sequence[int]
+           ) -> list[Array]:
+    """Per-segment score series ``g_t = sum_k J[t,k]^T r[t,k]``, each of shape (N_s, p)."""
+    J, r = _check(jac, residual, ny, seg_sizes)
+    out: list[Array] = []
+    row = 0
+    p = J.shape[1]
+    for n in seg_sizes:
+        rows = int(n) * ny
+        g = (J[row:row + rows] * r[row:row + rows, None]).reshape(int(n), ny, p).sum(axis=1)
+        out.append(np.asarray(g, dtype=float))
+        row += rows
+    return out
+
+
+def bartlett_bandwidth(series: Sequence[Array], max_fraction: float = 0.25) -> int:
+    """Andrews' (1991) AR(1) plug-in bandwidth of the Bartlett window [samples], at least 1.
+
+    Each column of each series is fitted an AR(1) coefficient ``rho`` (clipped to 0.97); the
+    columns are pooled with weights ``sigma^4 / (1 - rho)^4`` as Andrews prescribes, giving
+    ``alpha = sum 4 rho^2 sigma^4 / ((1-rho)^6 (1+rho)^2) / sum sigma^4 / (1-rho)^4`` and
+    ``L = 1.1447 (alpha N)^(1/3)``, capped at ``max_fraction`` of the shortest series.
+    """
+    num = den = 0.0
+    n_total = 0
+    shortest = min((s.shape[0] for s in series), default=0)
+    for s in series:
+        x = np.asarray(s, dtype=float)
+        if x.ndim == 1:
+            x = x[:, None]
+        n_total += x.shape[0]
+        if x.shape[0] < 3:
+            continue
+        x = x - x.mean(axis=0)
+        a, b = x[1:], x[:-1]
+        bb = np.einsum("ij,ij->j", b, b)
+        ok = bb > 0
+        rho = np.zeros(x.shape[1])
+        rho[ok] = np.einsum("ij,ij->j", a, b)[ok] / bb[ok]
+        rho = np.clip(rho, -0.97, 0.97)
+        sig2 = np.var(a - b * rho, axis=0)
+        num += float(np.sum(4 * rho**2 * sig2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)))
+        den += float(np.sum(sig2**2 / (1 - rho) ** 4))
+    if den <= 0.0 or n_total == 0:
+        return 1
+    alpha = num / den
+    L = 1.1447 * (alpha * n_total) ** (1.0 / 3.0)
+    cap = max(1, int(max_fraction * shortest))
+    return int(min(max(1, math.ceil(L)), cap))
+
+
+def long_run_covariance(series: Sequence[Array], bandwidth: int) -> Array:
+    """Bartlett-window long-run covariance ``sum_l (1 - |l|/L) Gamma_l`` summed over segments.
+
+    Computed as ``(1/L) sum_t B_t B_t^T`` over the overlapping block sums ``B_t`` of ``L``
+    consecutive scores (cumulative sums: O(N p^2)), which is the Bartlett estimator up to the
+    ends of the series; the ends are corrected by the factor ``N / (N - L + 1)``. Series are
+    taken as having mean zero (scores at an optimum). Shape (p, p).
+    """
+    L = max(1, int(bandwidth))
+    p = series[0].shape[1] if series else 0
+    S = np.zeros((p, p))
+    for s in series:
+        g = np.asarray(s, dtype=float)
+        n = g.shape[0]
+        if n == 0:
+            continue
+        Ls = min(L, n)
+        c = np.vstack([np.zeros((1, p)), np.cumsum(g, axis=0)])
+        B = c[Ls:] - c[:-Ls]  # (n - Ls + 1, p)
+        S += (B.T @ B) / Ls * (n / (n - Ls + 1))
+    return S
+
+
+def _pinv(H: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Pseudo-inverse of the symmetric ``H`` and a mask of the determined parameters."""
+    w, V = np.linalg.eigh(H)
+    keep = w > (SINGULAR_RTOL**2) * max(float(w.max(initial=0.0)), 0.0)
+    if not np.any(keep):
+        return np.zeros_like(H), np.zeros(H.shape[0], dtype=bool)
+    Vk = V[:, keep]
+    Hinv = (Vk / w[keep]) @ Vk.T
+    # a parameter is undetermined if it has weight in a dropped direction
+    dropped = V[:, ~keep]
+    determined: NDArray[np.bool_] = (np.sum(dropped**2, axis=1) < 1e-6 if dropped.size
+                                     else np.ones(H.shape[0], dtype=bool))
+    return Hinv, determined
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """A parameter covariance and how it was obtained.
+
+    ``cov`` (p, p); ``std`` (p,) with ``inf`` for undetermined parameters; ``naive_std`` the
+    white-residual figure ``s^2 (J^T J)^-1`` for comparison; ``bandwidth`` the lag window
+    [samples]; ``inflation`` the median ratio ``std / naive_std`` (how coloured the residual is).
+    """
+
+    cov: Array
+    std: Array
+    naive_std: Array
+    bandwidth: int
+    inflation: float
+
+
+def sandwich_covariance(jac: ArrayLike, residual: ArrayLike, ny: int,
+                        seg_sizes: Sequence[int], bandwidth: int | None = None,
+                        n_params: int | None = None) -> Covariance:
+    """HAC sandwich covariance of least-squares parameters (see module docstring).
+
+    Args:
+        jac: Jacobian of the residual vector, shape (m, p).
+        residual: residual vector at the optimum, shape (m,), ``m = ny * sum(seg_sizes)``.
+        ny: outputs per time step.
+        seg_sizes: samples per segment, in the order of the residual.
+        bandwidth: Bartlett window [samples]; ``None``: :func:`bartlett_bandwidth`.
+        n_params: parameter count for the small-sample factor ``m / (m - p)``.
+
+    Returns:
+        :class:`Covariance` in the parameters' units.
+    """
+    J, r = _check(jac, residual, ny, seg_sizes)
+    m, p = J.shape
+    H = J.T @ J
+    Hinv, determined = _pinv(H)
+    g = scores(J, r, ny, seg_sizes)
+    L = bartlett_bandwidth(g) if bandwidth is None else max(1, int(bandwidth))
+    S = long_run_covariance(g, L)
+    dof = max(m - (p if n_params is None else n_params), 1)
+    cov = Hinv @ S @ Hinv * (m / dof)
+    cov = 0.5 * (cov + cov.T)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    s2 = float(r @ r) / dof
+    naive = np.sqrt(np.clip(np.diag(Hinv) * s2, 0.0, None))
+    std[~determined] = np.inf
+    naive[~determined] = np.inf
+    ok = determined & (naive > 0)
+    inflation = float(np.median(std[ok] / naive[ok])) if np.any(ok) else math.nan
+    return Covariance(cov=cov, std=std, naive_std=naive, bandwidth=L, inflation=inflation)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Diebold-Mariano comparison of two models' errors on the same data.
+
+    ``gain``: mean loss reduction per sample (old - new, in the loss's units); ``stat``: its
+    HAC t-statistic; ``p_value``: one-sided probability of a gain this large if the new model
+    were no better; ``relative_gain``: ``gain`` over the old mean loss; ``bandwidth`` [samples].
+    """
+
+    gain: float
+    stat: float
+    p_value: float
+    relative_gain: float
+    bandwidth: int
+
+    def better(self, alpha: float) -> bool:
+        """The new model is significantly better at level ``alpha``."""
+        return bool(self.gain > 0.0 and self.p_value < alpha)
+
+
+def diebold_mariano(old: Sequence[ArrayLike], new: Sequence[ArrayLike],
+                    weights: ArrayLike | None = None) -> Comparison:
+    """Is ``new`` (residuals per segment, (N_s, ny)) smaller than ``old`` on the same data?
+
+    The loss of a time step is the weighted squared error summed over the outputs (weights
+    (ny,), e.g. 1 / output variance); the mean difference is tested with its Bartlett HAC
+    variance (segments windowed separately).
+
+    Raises:
+        UncertaintyError: segment counts or shapes differ.
+    """
+    if len(old) != len(new) or not old:
+        raise UncertaintyError(f"old/new: expected the same non-zero number of segments, got "
+                               f"{len(old)} and {len(new)}")
+    diffs: list[Array] = []
+    base = 0.0
+    count = 0
+    for k, (a, b) in enumerate(zip(old, new, strict=True)):
+        ea = np.asarray(a, dtype=float)
+        eb = np.asarray(b, dtype=float)
+        ea = ea[:, None] if ea.ndim == 1 else ea
+        eb = eb[:, None] if eb.ndim == 1 else eb
+        if ea.shape != eb.shape:
+            raise UncertaintyError(f"segment {k}: old residual {ea.shape} and new {eb.shape} "
+                                   "differ in shape")
+        w = (np.ones(ea.shape[1]) if weights is None
+             else np.asarray(weights, dtype=float).reshape(-1))
+        if w.size != ea.shape[1]:
+            raise UncertaintyError(f"weights: expected {ea.shape[1]} values, got {w.size}")
+        la = (ea**2) @ w
+        lb = (eb**2) @ w
+        diffs.append((la - lb)[:, None])
+        base += float(la.sum())
+        count += la.size
+    d_all = np.concatenate([d[:, 0] for d in diffs])
+    n = d_all.size
+    gain = float(d_all.mean())
+    centred = [d - gain for d in diffs]
+    L = bartlett_bandwidth(centred)
+    lrv = float(long_run_covariance(centred, L)[0, 0])
+    se = math.sqrt(max(lrv, 0.0)) / n  # lrv sums over the n samples: var(mean) = lrv / n^2
+    if se > 0.0:
+        stat = gain / se
+    else:
+        stat = math.inf if gain > 0 else (-math.inf if gain < 0 else 0.0)
+    p_value = float(norm.sf(stat))
+    rel = gain / (base / count) if base > 0 else 0.0
+    return Comparison(gain=gain, stat=float(stat), p_value=p_value, relative_gain=float(rel),
+                      bandwidth=L)
+
+
+@dataclass(frozen=True)
+class NoiseFloor:
+    """White-noise floor of a residual and the structured share of its variance.
+
+    ``rms`` the residual's RMS; ``floor_rms`` the white part's RMS estimated from the first
+    difference (``var(diff r) / 2``); ``structured_share`` ``1 - floor^2 / rms^2`` clipped to
+    [0, 1]: near 0 for a residual that is only sensor noise.
+    """
+
+    rms: float
+    floor_rms: float
+    structured_share: float
+
+
+def noise_floor(residuals: Sequence[ArrayLike]) -> NoiseFloor:
+    """The white floor of one output's residual, pooled over segments (each 1-D, (N_s,)).
+
+    The first difference of white noise has twice its variance, while a structured part that
+    varies slowly against the sample period contributes little to it; so ``var(diff r) / 2``
+    bounds the white part from above and the structured share from below (a conservative
+    figure: a residual reads "structured" only if it clearly is).
+    """
+    ss = sd = 0.0
+    n = nd = 0
+    for r in residuals:
+        x = np.asarray(r, dtype=float).reshape(-1)
+        x = x[np.isfinite(x)]
+        if x.size < 2:
+            continue
+        x = x - x.mean()
+        ss += float(x @ x)
+        n += x.size
+        d = np.diff(x)
+        sd += float(d @ d)
+        nd += d.size
+    if n == 0 or nd == 0:
+        return NoiseFloor(rms=math.nan, floor_rms=math.nan, structured_share=math.nan)
+    var = ss / n
+    floor = min(sd / nd / 2.0, var)
+    share = 0.0 if var <= 0 else float(np.clip(1.0 - floor / var, 0.0, 1.0))
+    return NoiseFloor(rms=math.sqrt(var), floor_rms=math.sqrt(floor), structured_share=share)

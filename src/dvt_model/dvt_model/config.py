@@ -1,0 +1,279 @@
+"""The model node's configuration from its parameters (pure: no rclpy).
+
+:func:`check_parameters` validates a (partial) set of model-node parameter values against the
+contract (:data:`dvt_model.contract.MODEL_PARAMETERS`) and the physics: the node refuses what
+it refuses, and the identifier's push checks its values with it before writing them, so the
+push cannot write what the node would refuse. :func:`build_predictor` turns valid values into
+the running :class:`~dvt_model.predictor.Predictor`.
+
+Admissibility beyond each parameter's own type, length and range:
+
+- ``M``: symmetric positive definite, smallest eigenvalue at least
+  :data:`~dvt_model.contract.M_MIN_EIGENVALUE` [kg m^2], condition number at most
+  :data:`~dvt_model.contract.M_MAX_CONDITION`.
+- ``D``: symmetric positive semi-definite (damping dissipates, never feeds energy).
+- ``A``: stable, every eigenvalue with a negative real part; ``A`` and ``B`` both given or
+  both empty; the linear model carries no force terms (they need the physics).
+- ``effects``: :func:`dvt_model.contract.validate_effects` (physically admissible terms, at
+  most :data:`~dvt_model.contract.MAX_EFFECT_TERMS`).
+- ``params``: a bundled parameter set or a readable, valid YAML file.
+- ``load``: ``none``, a preset of :mod:`dvt_model.load` or a readable, valid load YAML; not
+  with the linear model (the load acts through the physics).
+
+Every error is a :class:`~dvt_model.errors.ContractError` or
+:class:`~dvt_model.errors.ModelError` whose message starts with the parameter's name and
+gives the value and what is admissible.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dvt_model.contract import (
+    M_MAX_CONDITION,
+    M_MIN_EIGENVALUE,
+    MODEL_PARAMETERS,
+    short_repr,
+)
+from dvt_model.dynamics import RigidModel, rigid_model
+from dvt_model.errors import ContractError, DvtModelError, ModelError
+from dvt_model.hybrid import HybridModel
+from dvt_model.linear import LinearModel
+from dvt_model.load import JointLoad, load_joint_load
+from dvt_model.params import BrakeParams, TransmissionParams, load_parameters
+from dvt_model.predictor import Predictor
+from dvt_model.terms import Terms, parse_terms
+
+Array = NDArray[np.float64]
+
+_SYMMETRY_RTOL = 1e-9
+"""Relative tolerance of the symmetry checks (the push writes the off-diagonal entry twice)."""
+_PSD_RTOL = 1e-12
+"""An eigenvalue of D down to ``-_PSD_RTOL * max |eigenvalue|`` counts as zero (round-off)."""
+
+
+def defaults() -> dict[str, Any]:
+    """Every model-node parameter's default value, by name."""
+    return {name: spec.default for name, spec in MODEL_PARAMETERS.items()}
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Validated model-node configuration.
+
+    Attributes:
+        params: the parameter set (``params``).
+        rigid: its rigid model with the ``M``, ``D``, ``motor_constant`` overrides applied.
+        brake: its band data with the ``band_gain``/``band_time_constant`` overrides applied.
+        linear: ``(A (2, 2) [1/s], B (2, 2) or (2, 4))`` of the linear model, or ``None``.
+        terms: the effect terms.
+        mode, reanchor_period [s], gap_reset [s]: the predictor's settings.
+        changes: names of the overrides applied to the parameter set.
+        load: the joint load on carrier 3 (``load``), or ``None``.
+    """
+
+    params: TransmissionParams
+    rigid: RigidModel
+    brake: BrakeParams
+    linear: tuple[Array, Array] | None
+    terms: Terms
+    mode: str
+    reanchor_period: float
+    gap_reset: float
+    changes: tuple[str, ...]
+    load: JointLoad | None = None
+
+
+def _plain(value: Any) -> Any:
+    """numpy arrays and scalars as plain Python values (the contract checks Python types)."""
+    if isinstance(value, np.ndarray):
+        return value.reshape(-1).tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def normalise(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` merged onto the defaults, each checked against its contract entry (type,
+    length, range) and normalised (str, float, tuple of floats).
+
+    Raises:
+        ContractError: an unknown name, or a value of the wrong type, length or range.
+    """
+    unknown = sorted(str(k) for k in values if k not in MODEL_PARAMETERS)
+    if unknown:
+        raise ContractError(f"{unknown[0]}: unknown parameter of the model node (expected one "
+                            f"of {list(MODEL_PARAMETERS)})")
+    out = defaults()
+    for name, value in values.items():
+        out[name] = MODEL_PARAMETERS[name].check(_plain(value))
+    return out
+
+
+def _matrix(name: str, raw: tuple[float, ...], cols: int = 2) -> Array:
+    return np.asarray(raw, dtype=float).reshape(2, cols)
+
+
+def _check_symmetric(name: str, mat: Array) -> None:
+    scale = float(np.max(np.abs(mat)))
+    if abs(mat[0, 1] - mat[1, 0]) > _SYMMETRY_RTOL * scale:
+        raise ModelError(f"{name}: {mat.reshape(-1).tolist()} is not admissible: expected a "
+                         f"symmetric matrix (entries 1 and 2 equal)")
+
+
+def check_mass(raw: tuple[float, ...]) -> Array:
+    """``M`` (4 values row-major) as a (2, 2) array [kg m^2] if admissible, else ModelError."""
+    M = _matrix("M", raw)
+    _check_symmetric("M", M)
+    eig = np.linalg.eigvalsh(M)
+    if eig[0] < M_MIN_EIGENVALUE:
+        raise ModelError(
+            f"M: {M.reshape(-1).tolist()} is not admissible: expected symmetric positive "
+            f"definite with smallest eigenvalue >= {M_MIN_EIGENVALUE:g} kg m^2, got eigenvalues "
+            f"{eig.tolist()}" + (" (not positive definite)" if eig[0] <= 0.0 else ""))
+    cond = float(eig[1] / eig[0])
+    if cond > M_MAX_CONDITION:
+        raise ModelError(f"M: {M.reshape(-1).tolist()} is not admissible: condition number "
+                         f"{cond:.3g}, at most {M_MAX_CONDITION:g} allowed")
+    return M
+
+
+def check_damping(raw: tuple[float, ...]) -> Array:
+    """``D`` (4 values row-major) as a (2, 2) array [N m s] if admissible, else ModelError."""
+    D = _matrix("D", raw)
+    _check_symmetric("D", D)
+    eig = np.linalg.eigvalsh(D)
+    if eig[0] < -_PSD_RTOL * max(float(np.max(np.abs(eig))), 1e-300):
+        raise ModelError(f"D: {D.reshape(-1).tolist()} is not admissible: expected symmetric "
+                         f"positive semi-definite (damping dissipates energy), got eigenvalues "
+                         f"{eig.tolist()}")
+    return D
+
+
+def check_linear(a_raw: tuple[float, ...], b_raw: tuple[float, ...]) -> tuple[Array, Array]:
+    """``(A (2, 2), B (2, m))`` of the linear model if admissible, else ModelError."""
+    A = _matrix("A", a_raw)
+    B = _matrix("B", b_raw, len(b_raw) // 2)
+    eig = np.linalg.eigvals(A)
+    if not np.all(eig.real < 0.0):
+        shown = [complex(e) if e.imag else float(e.real) for e in eig]
+        raise ModelError(f"A: {A.reshape(-1).tolist()} is not admissible: expected a stable "
+                         f"matrix (every eigenvalue with negative real part), got eigenvalues "
+                         f"{shown}")
+    return A, B
+
+
+def _load(name: str) -> TransmissionParams:
+    try:
+        return load_parameters(name)
+    except DvtModelError as exc:
+        raise ContractError(f"params: {short_repr(name)}: {exc}") from exc
+    except (OSError, ValueError) as exc:  # e.g. a path too long for the file system
+        raise ContractError(f"params: {short_repr(name)}: cannot load: {exc}") from exc
+
+
+def _joint_load(name: str) -> JointLoad | None:
+    try:
+        return load_joint_load(name)
+    except DvtModelError as exc:
+        text = str(exc)
+        raise ContractError(text if text.startswith("load:") else
+                            f"load: {short_repr(name)}: {text}") from exc
+    except (OSError, ValueError) as exc:
+        raise ContractError(f"load: {short_repr(name)}: cannot load: {exc}") from exc
+
+
+def resolve(values: Mapping[str, Any]) -> ModelConfig:
+    """Validate model-node parameter values (merged onto the defaults) into a configuration.
+
+    Raises:
+        ContractError, ModelError: naming the parameter, the value and what is admissible.
+    """
+    v = normalise(values)
+    params = _load(str(v["params"]))
+    rigid = rigid_model(params)
+    changes: dict[str, Any] = {}
+    if v["M"]:
+        changes["M"] = check_mass(v["M"])
+    if v["D"]:
+        changes["D"] = check_damping(v["D"])
+    if v["motor_constant"] > 0.0:
+        changes["motor_constant"] = float(v["motor_constant"])
+    if changes:
+        rigid = dataclasses.replace(rigid, **changes)
+    brake = params.brake
+    band_gain, band_tau = v["band_gain"] or None, v["band_time_constant"] or None
+    if band_gain is not None or band_tau is not None:
+        brake = dataclasses.replace(brake, band_gain=band_gain, band_time_constant=band_tau)
+        changes.update({k: True for k in ("band_gain", "band_time_constant") if v[k]})
+    a_raw, b_raw = v["A"], v["B"]
+    linear: tuple[Array, Array] | None = None
+    if a_raw or b_raw:
+        if not (a_raw and b_raw):
+            missing = "B" if a_raw else "A"
+            raise ModelError(f"{'A' if a_raw else 'B'}: A and B: give both (4 and 4 or 8 "
+                             f"values) or neither; {missing} is empty (set both at once with "
+                             "set_parameters_atomically)")
+        linear = check_linear(a_raw, b_raw)
+    terms = parse_terms(str(v["effects"]))
+    if linear is not None and terms.forces:
+        raise ModelError("effects: force terms need the physical model (clear A and B)")
+    load = _joint_load(str(v["load"]))
+    if linear is not None and load is not None:
+        raise ModelError(f"load: {short_repr(v['load'])} needs the physical model (clear A "
+                         "and B, or set load to none)")
+    return ModelConfig(params=params, rigid=rigid, brake=brake, linear=linear, terms=terms,
+                       mode=str(v["mode"]), reanchor_period=float(v["reanchor_period"]),
+                       gap_reset=float(v["gap_reset"]), changes=tuple(sorted(changes)),
+                       load=load)
+
+
+def check_parameters(values: Mapping[str, Any]) -> None:
+    """Validate a (partial) set of model-node parameter values merged onto the defaults.
+
+    What the model node refuses, this refuses (the identifier's push calls it before writing).
+
+    Raises:
+        ContractError, ModelError (both :class:`~dvt_model.errors.DvtModelError`): the message
+            starts with the parameter's name and gives the value and what is admissible.
+    """
+    resolve(values)
+
+
+def build_predictor(values: Mapping[str, Any]) -> tuple[Predictor, str]:
+    """Validate parameter values (merged onto the defaults) and build the node's predictor.
+
+    Returns:
+        The predictor and a one-line description of its model.
+
+    Raises:
+        ContractError, ModelError: as :func:`check_parameters`.
+    """
+    cfg = resolve(values)
+    terms = cfg.terms
+    model: HybridModel | LinearModel
+    if cfg.linear is not None:
+        A, B = cfg.linear
+        model = LinearModel(A, B)
+        desc = f"linear A,B (2x{B.shape[1]})"
+    else:
+        model = HybridModel(cfg.rigid, cfg.brake,
+                            extra_force=terms.extra_force if terms.forces else None,
+                            load=cfg.load)
+        desc = f"hybrid physics '{cfg.params.name}'" + (
+            f" with {list(cfg.changes)}" if cfg.changes else "")
+        if cfg.load is not None:
+            desc += f", load '{cfg.load.name}'"
+    if not terms.empty:
+        desc += f" + {len(terms.forces)} force term(s), delay {terms.delay:g} s"
+    predictor = Predictor(model, cfg.brake, mode="reanchor" if cfg.mode == "reanchor"
+                          else "simulate", reanchor_period=cfg.reanchor_period,
+                          gap_reset=cfg.gap_reset, output_delay=terms.delay,
+                          output_gain=terms.gains)
+    return predictor, desc

@@ -1,0 +1,23 @@
+"""The on-disk layout of a DVT recording (pure; constants only).
+
+A recording is a rosbag2 directory: ``metadata.yaml`` (rosbag2 version 9) next to one ``.mcap``
+file (profile ``ros2``, schema encoding ``ros2msg``, message encoding ``cdr``, ROS 2 Jazzy
+types), optionally with a ``truth.yaml`` sidecar (simulation only). Topic names and joint names
+are the contract's (:mod:`dvt_model.contract`).
+"""
+
+from __future__ import annotations
+
+ROSBAG2_VERSION = 9
+"""``metadata.yaml`` version written (as ``rosbags`` writes it for Jazzy)."""
+ROS_DISTRO = "jazzy"
+LIBRARY = "dvt-recorder"
+"""The ``library`` field of the MCAP header of every bag written here."""
+METADATA_FILE = "metadata.yaml"
+TRUTH_FILE = "truth.yaml"
+"""Sidecar with the simulated plant's hidden truth (see :func:`~.write.write_run`)."""
+RECOVER_HINT = "dvt-bag recover"
+"""The command that rebuilds a killed recording (named in errors)."""
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+NS = 1_000_000_000
+"""Nanoseconds per second."""

@@ -1,0 +1,193 @@
+"""``dvt-launch sim --foxglove``: a Foxglove WebSocket client gets the advertised channels and
+the messages at the configured rate, with the values of the ROS topics; the shipped layout
+names only advertised channels."""
+
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import ROOT, Procs, wait_for
+from dvt_driver.run.foxglove_core import (
+    CHANNEL_TOPICS,
+    IDENTIFY,
+    RESIDUAL_BAND,
+    STATE,
+    layout_topics,
+)
+from dvt_model.contract import DIAGNOSTICS, IDENTIFY_RESULT, JOINT_STATES, MODEL_RESIDUAL
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
+
+RATE_HZ = 50.0
+SIM_RATE = 500
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class FoxgloveClient:
+    """A minimal Foxglove WebSocket protocol client: subscribes to every advertised channel
+    and keeps the decoded JSON messages (with their log times) per topic."""
+
+    def __init__(self, url: str) -> None:
+        from websockets.sync.client import connect
+
+        self.ws = connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=5)  # type: ignore[list-item]
+        self.channels: dict[int, dict[str, Any]] = {}
+        self.subs: dict[int, str] = {}
+        self.messages: dict[str, list[tuple[int, dict[str, Any], float]]] = defaultdict(list)
+        self.errors: list[str] = []
+        self._quit = threading.Event()
+        self.lock = threading.Lock()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self._quit.is_set():
+            try:
+                m = self.ws.recv(timeout=0.2)
+            except TimeoutError:
+                continue
+            except Exception as exc:  # closed
+                if not self._quit.is_set():
+                    self.errors.append(repr(exc))
+                return
+            if isinstance(m, str):
+                d = json.loads(m)
+                if d.get("op") == "advertise":
+                    subs = []
+                    for c in d["channels"]:
+                        self.channels[c["id"]] = c
+                        sid = len(self.subs) + 1
+                        self.subs[sid] = c["topic"]
+                        subs.append({"id": sid, "channelId": c["id"]})
+                    self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            elif m and m[0] == 0x01:  # message data
+                sid, log_time = struct.unpack_from("<IQ", m, 1)
+                with self.lock:
+                    self.messages[self.subs[sid]].append(
+                        (log_time, json.loads(m[13:]), time.monotonic()))
+
+    def topics(self) -> set[str]:
+        return {c["topic"] for c in self.channels.values()}
+
+    def got(self, topic: str) -> list[tuple[int, dict[str, Any], float]]:
+        with self.lock:
+            return list(self.messages.get(topic, []))
+
+    def close(self) -> None:
+        self._quit.set()
+        self.ws.close()
+        self.thread.join(timeout=5)
+
+
+def _stamp(msg: dict[str, Any]) -> int:
+    s = msg["header"]["stamp"]
+    return int(s["sec"]) * 1_000_000_000 + int(s["nsec"])
+
+
+def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) -> None:
+    import rclpy
+    from rclpy.experimental import EventsExecutor
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+
+    from dvt_model import rosutil
+
+    port = _free_port()
+    launch = procs.start("dvt-launch", "sim", "--rate", str(SIM_RATE), "--foxglove",
+                         "--foxglove-port", str(port), "--foxglove-param",
+                         f"rate_hz:={RATE_HZ:g}", "--log-dir", str(tmp_path / "launch"))
+    wait_for(lambda: "Foxglove: open" in procs.log(launch) or launch.poll() is not None, 60,
+             "dvt-launch with --foxglove to be up")
+    assert launch.poll() is None, procs.log(launch)
+
+    node = rclpy.create_node("fox_check", context=rclpy_context)
+    ros: dict[str, dict[int, list[float]]] = {JOINT_STATES: {}, MODEL_RESIDUAL: {}}
+    for topic in ros:
+        node.create_subscription(
+            JointState, topic,
+            lambda m, t=topic: ros[t].__setitem__(rosutil.stamp_to_ns(m.header.stamp),
+                                                  list(m.velocity)), rosutil.SENSOR_QOS)
+    result_pub = node.create_publisher(String, IDENTIFY_RESULT, rosutil.LATCHED_QOS)
+    ex = EventsExecutor(context=rclpy_context)  # cheap at 1 kHz: leaves the GIL to the client
+    ex.add_node(node)
+
+    client = FoxgloveClient(f"ws://127.0.0.1:{port}")
+    try:
+        wait_for(lambda: client.topics() >= CHANNEL_TOPICS, 10, "the advertised channels")
+        assert client.topics() == set(CHANNEL_TOPICS)
+        for c in client.channels.values():
+            assert c["encoding"] == "json" and c["schemaEncoding"] == "jsonschema", c
+            assert json.loads(c["schema"])["type"] == "object", c
+
+        summary = {"baseline_fit_percent": {"sun_shaft": 97.5}, "pushed": {"node": "dvt_model"}}
+        result_pub.publish(String(data=json.dumps(summary)))
+        window = 4.0
+        t_end = time.monotonic() + window
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.02)
+        t0 = t_end - window
+
+        # rate: the 1 kHz streams come at RATE_HZ (by stamp and by arrival)
+        js = client.got(JOINT_STATES)
+        inside = [m for m in js if m[2] >= t0]
+        assert len(inside) >= 0.6 * RATE_HZ * window, (len(inside), procs.log(launch)[-2000:])
+        stamps = [_stamp(m[1]) for m in js]
+        steps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+        period = 1e9 / RATE_HZ
+        assert steps and min(steps) >= period - 1e9 / SIM_RATE - 1e6, steps[:20]
+        rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9)
+        assert 0.7 * RATE_HZ <= rate <= 1.05 * RATE_HZ, rate
+        assert all(m[0] == _stamp(m[1]) for m in js), "log time is the sample stamp"
+
+        # values: what the client got equals the ROS message of the same stamp
+        for topic in (JOINT_STATES, MODEL_RESIDUAL):
+            got = client.got(topic)
+            matched = [(m[1]["velocity"], ros[topic][_stamp(m[1])]) for m in got
+                       if _stamp(m[1]) in ros[topic]]
+            assert len(matched) >= 20, (topic, len(got), len(ros[topic]))
+            for ws_v, ros_v in matched:
+                assert ws_v == pytest.approx(ros_v, rel=0, abs=0), (topic, ws_v, ros_v)
+            assert got[-1][1]["name"] == ["sun_shaft", "carrier3"]
+
+        # the noise band: stamped like the residual, lower <= mean <= upper
+        band = client.got(RESIDUAL_BAND)
+        res_stamps = {_stamp(m[1]) for m in client.got(MODEL_RESIDUAL)}
+        assert band and all(_stamp(b[1]) in res_stamps for b in band)
+        last = band[-1][1]
+        assert last["samples"] > 1
+        for lo, mu, hi in zip(last["lower"], last["mean"], last["upper"], strict=True):
+            assert lo <= mu <= hi
+
+        # diagnostics, the driver's state, the identifier's result
+        diag = client.got(DIAGNOSTICS)
+        assert any(s["name"] == "dvt_driver" for m in diag for s in m[1]["status"]), diag[:2]
+        states = client.got(STATE)
+        assert states and states[-1][1]["lifecycle_state"] == "active", states[-1:]
+        wait_for(lambda: client.got(IDENTIFY), 5, "the identifier's result")
+        assert client.got(IDENTIFY_RESULT)[-1][1]["data"] == json.dumps(summary)
+        assert client.got(IDENTIFY)[-1][1] == summary
+
+        # the shipped layout names only advertised channels
+        layout = json.loads((ROOT / "docs" / "foxglove" / "dvt-layout.json").read_text())
+        assert layout_topics(layout) <= client.topics()
+        assert not client.errors, client.errors
+    finally:
+        client.close()
+        ex.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+    rc = procs.stop(launch, timeout=30)
+    assert rc in (0, 130), procs.log(launch)[-3000:]
