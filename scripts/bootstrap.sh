@@ -8,17 +8,33 @@ cd "$root"
 py="${PYTHON:-python3}"
 venv="$root/.venv"
 stamp="$venv/.dvt-bootstrap-stamp"
+# tests/test_multihost.py makes network namespaces with `ip` (iproute2): install it when
+# missing and we are root (otherwise that test skips, saying why)
+if ! command -v ip >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iproute2; } \
+    >/dev/null 2>&1 || echo "bootstrap: could not install iproute2 (test_multihost skips)" >&2
+fi
 want="$(cat requirements.txt src/*/setup.py src/*/setup.cfg | sha256sum | cut -d' ' -f1)"
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/python" ]; then
   exit 0
 fi
-echo "bootstrap: setting up $venv" >&2
-[ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
-"$venv/bin/python" -m pip install --quiet --disable-pip-version-check --upgrade "pip>=24" >&2
-"$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r requirements.txt >&2
+echo "bootstrap: setting up $venv (log: $venv/bootstrap.log)" >&2
+log="$(mktemp)"
+quiet() {  # run a set-up step; its output goes to the log, shown only if the step fails
+  if ! "$@" >>"$log" 2>&1; then
+    echo "bootstrap: failed: $*" >&2
+    tail -n 60 "$log" >&2
+    exit 1
+  fi
+}
+[ -x "$venv/bin/python" ] || quiet "$py" -m venv "$venv"
+pipq=("$venv/bin/python" -m pip install --quiet --disable-pip-version-check)
+quiet "${pipq[@]}" --upgrade "pip>=24"
+quiet "${pipq[@]}" -r requirements.txt
 for pkg in dvt_model dvt_driver dvt_identify; do
-  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation --config-settings editable_mode=compat -e "src/$pkg" >&2
+  quiet "${pipq[@]}" --no-deps --no-build-isolation --config-settings editable_mode=compat -e "src/$pkg"
 done
-"$venv/bin/python" -c "import rclpy, sensor_msgs.msg, rosbags, scipy, dvt_model, dvt_driver, dvt_identify" >&2
+quiet "$venv/bin/python" -c "import rclpy, sensor_msgs.msg, rosbags, scipy, dvt_model, dvt_driver, dvt_identify"
+mv "$log" "$venv/bootstrap.log"
 echo "$want" > "$stamp"
 echo "bootstrap: done" >&2

@@ -495,3 +495,64 @@ def test_short_unplug_loses_at_most_0_3_s(procs: Any, harness: Harness, tmp_path
     assert all(0.19 <= g <= 0.3 for g in gaps), gaps
     assert h.diag_int("disconnects") >= 3
     assert _strictly_increasing([st for st, *_ in h.js])
+
+
+def _positions(h: Harness) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps [ns], positions (n, 2) [rad], speeds (n, 2) [rad/s]) of the samples that carry
+    positions."""
+    stamps, pos, vel = [], [], []
+    for stamp, raw, _ in h.js:
+        msg = deserialize_message(raw, JointState)
+        if len(msg.position):
+            assert list(msg.name) == ["sun_shaft", "carrier3"] and len(msg.position) == 2
+            stamps.append(stamp)
+            pos.append(list(msg.position))
+            vel.append(list(msg.velocity))
+    return (np.asarray(stamps, dtype=np.int64), np.asarray(pos).reshape(-1, 2),
+            np.asarray(vel).reshape(-1, 2))
+
+
+def test_positions_from_a_v2_controller_none_from_v1(procs: Any, harness: Harness,
+                                                     tmp_path: Path) -> None:
+    """A version-2 plant: every /dvt/joint_states carries position (sun_shaft, carrier3) [rad]
+    in the same message as the speeds, consistent with them; a version-1 plant: speeds only."""
+    plant, port = start_plant(procs, tmp_path)
+    driver = start_driver(procs, port, "autostart:=true")
+    h = harness
+    h.wait_samples(200)
+    h.pub_gear.publish(Int8(data=1))
+    h.drive(4.0, 1.5)
+    t = time.time_ns()
+    h.wait_stamp(t)
+    h.spin_until(lambda: h.diag_value("protocol_version") == "2", 5.0, "protocol 2 in diags")
+    assert h.diag_value("encoder_counts_per_rev") == "[4096, 16384]"
+    stamps, pos, vel = _positions(h)
+    assert len(stamps) > 0.95 * len(h.js)
+    assert pos[-1, 0] > 20.0  # the sun turned several revolutions
+    # the angles advance with the integrated speeds (the same samples)
+    d = np.diff(stamps) * 1e-9
+    ok = d < 1.5e-3  # consecutive samples
+    integ = 0.5 * (vel[1:] + vel[:-1]) * d[:, None]
+    step = np.diff(pos, axis=0)
+    sun_err = np.abs(np.sum(step[ok, 0]) - np.sum(integ[ok, 0]))
+    assert sun_err < 0.05 * abs(np.sum(step[ok, 0])) + 0.5
+    # gear 1: carrier 3 turns 1/3.04 of the sun's angle once the band holds
+    late = stamps > t - 500_000_000
+    dp = pos[late][-1] - pos[late][0]
+    assert dp[1] / dp[0] == pytest.approx(GEAR1_RATIO, rel=0.02)
+    assert procs.stop(driver) == 0
+    procs.stop(plant)
+    # an old controller (protocol 1): speeds only, no positions
+    h.spin_for(0.5)  # drain what the first driver still had on the way
+    t_old = time.time_ns()
+    plant1, port1 = start_plant(procs, tmp_path, "--protocol-version", "1",
+                                "--link", str(tmp_path / "old-port"))
+    driver1 = start_driver(procs, port1, "autostart:=true")
+    h.wait_samples(300)
+    new = [raw for stamp, raw, _ in h.js if stamp > t_old]
+    assert len(new) >= 250
+    assert all(len(deserialize_message(raw, JointState).position) == 0 for raw in new)
+    h.spin_until(lambda: h.diag_value("protocol_version") == "1", 5.0, "protocol 1 in diags")
+    assert int(h.diag_value("version_fallbacks", "0")) >= 1
+    assert procs.stop(driver1) == 0
+    procs.stop(plant1)

@@ -5,6 +5,12 @@ folder beside the work tree); skipped with a reason when the folder is absent. T
 come from the folder's README: baseline (inertia + viscous) validation velocity fit ~ 81.7 %,
 Coulomb friction with offset ranked first and accepted, final validation fit >= 93 %, M within
 3 % of 95.11 kg, Fc within 10 % of 20.39 N (IDIM-LS, benchmark authors).
+
+The benchmark's own protocol (examples/emps/benchmark.py, run on its own: about 30 s of CPU):
+simulated position on the test record (DATA_EMPS_PULSES) after a 20-sample state-initialisation
+window, RMS in mm, for the position-state model with the effects the loop accepts (Coulomb with
+offset, asymmetric viscous) fitted on the estimation record, and for the published IDIM-LS
+parameters simulated the same way.
 """
 
 from __future__ import annotations
@@ -20,6 +26,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 EMPS = ROOT.parent / "shared" / "data" / "emps"
 RUN = ROOT / "examples" / "emps" / "run.sh"
+BENCH = ROOT / "examples" / "emps" / "benchmark.py"
+PY = ROOT / ".venv" / "bin" / "python"
 
 pytestmark = [
     pytest.mark.slow,
@@ -38,6 +46,8 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     for png in ("fit_carriage.png", "resid_carriage.png", "candidates.png",
                 "linear_step_bode.png", "spectrum_carriage.png"):
         assert (out / png).stat().st_size > 10_000, png
+    bench = json.loads((out / "benchmark.json").read_text())
+    assert any(r["label"].startswith("velocity loop's final model") for r in bench["rows"])
     rep: dict[str, Any] = json.loads((out / "report.json").read_text())
     rep["_md"] = (out / "report.md").read_text()
     return rep
@@ -92,3 +102,75 @@ def test_asymmetry_found_or_reported(report: dict[str, Any]) -> None:
         assert p["Fv-"] == pytest.approx(240.4, rel=0.10)
     assert "asymmetric" in report["_md"]
     assert report["remaining"], "the report says what is left in the residual"
+
+
+# ---------------------------------------------------------------------------------------------
+# The EMPS benchmark protocol (simulated position, 20-sample window), benchmark.py on its own
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    out = tmp_path_factory.mktemp("emps_bench")
+    r = subprocess.run([str(PY), str(BENCH), "--data", str(EMPS), "--out", str(out)],
+                       capture_output=True, text=True, timeout=600, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    res: dict[str, Any] = json.loads((out / "benchmark.json").read_text())
+    res["_md"] = (out / "benchmark.md").read_text()
+    res["_rows"] = {row["label"]: row for row in res["rows"]}
+    return res
+
+
+def _row(bench: dict[str, Any], start: str) -> dict[str, Any]:
+    rows = [r for label, r in bench["_rows"].items() if label.startswith(start)]
+    assert len(rows) == 1, (start, list(bench["_rows"]))
+    return rows[0]
+
+
+def test_benchmark_protocol(bench: dict[str, Any]) -> None:
+    p = bench["protocol"]
+    assert p["n_init"] == 20 and p["n_scored"] == 24841 - 20 and p["unit"] == "mm"
+    assert [x["test_rms_mm"] for x in bench["published"]] == [5.53, 5.17, 2.64]
+    for text in ("LTI state space", "polynomial NARX", "SOTA", "published IDIM-LS"):
+        assert text in bench["_md"]
+
+
+def test_benchmark_published_idim_ls_simulated(bench: dict[str, Any]) -> None:
+    """No fit: the authors' parameters, exact ZOH with the stick rule, window x0: 8.39 mm.
+    +-0.05 mm: the simulation is deterministic; forward Euler (the issue's 8.9 mm) gives
+    8.85 mm, which this tolerance tells apart."""
+    r = _row(bench, "published IDIM-LS")
+    assert r["test_rms_mm"] == pytest.approx(8.39, abs=0.05)
+    assert r["estimation_rms_mm"] == pytest.approx(5.32, abs=0.05)
+
+
+def test_benchmark_our_models(bench: dict[str, Any]) -> None:
+    """Fitted for the position on the estimation record, best of 5 starts by the estimation
+    figure. Measured: Coulomb+offset 5.97 mm (est. 2.99), + asymmetric viscous 9.69 mm (est.
+    2.15). The other starts reach estimation figures within 15 % of the best and test figures
+    0.78 mm (Coulomb) and 2.56 mm (asymmetric) or more away, so +-0.5 mm on the test figure
+    checks that the same optimum is chosen, and +-0.05 mm on the estimation figure that the fit
+    is as good. (The asymmetric runner-up is only 0.7 % worse on the estimation figure, 2.165 mm,
+    and scores 7.13 mm: a flip of that choice fails here, by design.)"""
+    c = bench["_rows"]["ours: inertia + viscous + coulomb_friction"]
+    a = bench["_rows"]["ours: inertia + viscous + coulomb_friction + asymmetric_friction"]
+    assert c["test_rms_mm"] == pytest.approx(5.97, abs=0.5)
+    assert c["estimation_rms_mm"] == pytest.approx(2.99, abs=0.05)
+    assert a["test_rms_mm"] == pytest.approx(9.69, abs=0.5)
+    assert a["estimation_rms_mm"] == pytest.approx(2.15, abs=0.05)
+    assert a["test_velocity_fit_percent"] >= 93.0
+    assert len(a["starts"]) == 5
+    pa = a["parameters"]
+    assert pa["M"] == pytest.approx(95.11, rel=0.03)
+    assert pa["Fv+"] == pytest.approx(166.7, rel=0.10)
+    lin = bench["_rows"]["ours: inertia + viscous"]
+    assert lin["test_rms_mm"] > 50.0  # a linear rigid model drifts: friction is needed
+
+
+def test_benchmark_limit_is_the_change_between_records(bench: dict[str, Any]) -> None:
+    """The same structure fitted on the test record reaches < 1.5 mm (measured 0.88): the
+    structure is adequate. Away from pulse edges the test record needed more force than the
+    estimation record at the same reference in both directions (measured +0.72..+1.04 N and
+    -0.58..-1.55 N per quarter; data means with ~0.05 N standard error): friction changed."""
+    assert _row(bench, "diagnostic: same structure")["test_rms_mm"] < 1.5
+    for q in bench["steady_force_difference"]:
+        assert q["plus_N"] > 0.4 and q["minus_N"] < -0.4, q

@@ -4,6 +4,7 @@ names only advertised channels."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import struct
@@ -42,28 +43,39 @@ class FoxgloveClient:
     and keeps the decoded JSON messages (with their log times) per topic."""
 
     def __init__(self, url: str) -> None:
-        from websockets.sync.client import connect
-
-        self.ws = connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=5)  # type: ignore[list-item]
+        self.url = url
+        self.ws: Any = None
         self.channels: dict[int, dict[str, Any]] = {}
         self.subs: dict[int, str] = {}
         self.messages: dict[str, list[tuple[int, dict[str, Any], float]]] = defaultdict(list)
         self.errors: list[str] = []
         self._quit = threading.Event()
+        self._connected = threading.Event()
         self.lock = threading.Lock()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
+        if not self._connected.wait(timeout=10):
+            raise AssertionError(f"no WebSocket connection to {url}: {self.errors}")
 
     def _run(self) -> None:
+        from websockets.sync.client import connect
+
+        try:
+            with connect(self.url, subprotocols=["foxglove.sdk.v1"],  # type: ignore[list-item]
+                         open_timeout=5) as ws:
+                self.ws = ws
+                self._connected.set()
+                self._loop(ws)
+        except Exception as exc:  # refused or closed
+            if not self._quit.is_set():
+                self.errors.append(repr(exc))
+
+    def _loop(self, ws: Any) -> None:
         while not self._quit.is_set():
             try:
-                m = self.ws.recv(timeout=0.2)
+                m = ws.recv(timeout=0.2)
             except TimeoutError:
                 continue
-            except Exception as exc:  # closed
-                if not self._quit.is_set():
-                    self.errors.append(repr(exc))
-                return
             if isinstance(m, str):
                 d = json.loads(m)
                 if d.get("op") == "advertise":
@@ -73,8 +85,8 @@ class FoxgloveClient:
                         sid = len(self.subs) + 1
                         self.subs[sid] = c["topic"]
                         subs.append({"id": sid, "channelId": c["id"]})
-                    self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
-            elif m and m[0] == 0x01:  # message data
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            elif m and m[0] == 0x01:  # message data: op, subscription id, log time, payload
                 sid, log_time = struct.unpack_from("<IQ", m, 1)
                 with self.lock:
                     self.messages[self.subs[sid]].append(
@@ -89,7 +101,6 @@ class FoxgloveClient:
 
     def close(self) -> None:
         self._quit.set()
-        self.ws.close()
         self.thread.join(timeout=5)
 
 
@@ -116,15 +127,20 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
 
     node = rclpy.create_node("fox_check", context=rclpy_context)
     ros: dict[str, dict[int, list[float]]] = {JOINT_STATES: {}, MODEL_RESIDUAL: {}}
+    def keep(topic: str) -> Any:
+        def cb(m: Any) -> None:
+            ros[topic][rosutil.stamp_to_ns(m.header.stamp)] = list(m.velocity)
+        return cb
+
     for topic in ros:
-        node.create_subscription(
-            JointState, topic,
-            lambda m, t=topic: ros[t].__setitem__(rosutil.stamp_to_ns(m.header.stamp),
-                                                  list(m.velocity)), rosutil.SENSOR_QOS)
+        node.create_subscription(JointState, topic, keep(topic), rosutil.SENSOR_QOS)
     result_pub = node.create_publisher(String, IDENTIFY_RESULT, rosutil.LATCHED_QOS)
     ex = EventsExecutor(context=rclpy_context)  # cheap at 1 kHz: leaves the GIL to the client
     ex.add_node(node)
 
+    # the identifier's result comes before the client connects: the client still gets it
+    summary = {"baseline_fit_percent": {"sun_shaft": 97.5}, "pushed": {"node": "dvt_model"}}
+    result_pub.publish(String(data=json.dumps(summary)))
     client = FoxgloveClient(f"ws://127.0.0.1:{port}")
     try:
         wait_for(lambda: client.topics() >= CHANNEL_TOPICS, 10, "the advertised channels")
@@ -133,9 +149,7 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
             assert c["encoding"] == "json" and c["schemaEncoding"] == "jsonschema", c
             assert json.loads(c["schema"])["type"] == "object", c
 
-        summary = {"baseline_fit_percent": {"sun_shaft": 97.5}, "pushed": {"node": "dvt_model"}}
-        result_pub.publish(String(data=json.dumps(summary)))
-        window = 4.0
+        window = 5.0
         t_end = time.monotonic() + window
         while time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.02)
@@ -144,11 +158,13 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
         # rate: the 1 kHz streams come at RATE_HZ (by stamp and by arrival)
         js = client.got(JOINT_STATES)
         inside = [m for m in js if m[2] >= t0]
-        assert len(inside) >= 0.6 * RATE_HZ * window, (len(inside), procs.log(launch)[-2000:])
+        assert len(inside) >= 0.5 * RATE_HZ * window, (len(inside), procs.log(launch)[-2000:])
         stamps = [_stamp(m[1]) for m in js]
-        steps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+        steps = [b - a for a, b in itertools.pairwise(stamps)]
         period = 1e9 / RATE_HZ
-        assert steps and min(steps) >= period - 1e9 / SIM_RATE - 1e6, steps[:20]
+        short = [d for d in steps if d < period - 1e9 / SIM_RATE - 1e6]
+        assert steps and len(short) <= max(1, len(steps) // 20), steps[:40]
+        assert sorted(steps)[len(steps) // 2] == pytest.approx(period, abs=1e9 / SIM_RATE), steps
         rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9)
         assert 0.7 * RATE_HZ <= rate <= 1.05 * RATE_HZ, rate
         assert all(m[0] == _stamp(m[1]) for m in js), "log time is the sample stamp"

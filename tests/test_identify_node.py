@@ -96,3 +96,11 @@ def test_refit_and_push_shrinks_live_residual(procs, rclpy_context, tmp_path):
     assert np.all(after < 0.2 * before), (before, after)
     wait_for(lambda: (tmp_path / "reports" / "run-001" / "report.json").exists(), 5.0,
              "report.json")
+
+
+def test_bad_supervisor_parameter_is_refused_naming_it(procs):
+    proc = procs.start("dvt_identify_node", "--ros-args", "-p", "supervisor.enabled:=true",
+                       "-p", "supervisor.watch_s:=-1.0")
+    wait_for(lambda: proc.poll() is not None, 30.0, "the node to refuse to start")
+    assert proc.returncode == 2
+    assert "supervisor.watch_s: expected a time > 0 s, got -1.0" in procs.log(proc)

@@ -4,10 +4,15 @@
    and the bag holds every one of them.
 2. Crash: SIGKILL mid-run, ``dvt-bag recover``; the bag is readable, holds a gap-free prefix of
    what was published, and misses at most the last second.
+3. Rolling mode: the recorder keeps a ring of segments; a JSON request on
+   ``/dvt/recorder/snapshot`` writes a window spanning several segments as a normal bag that
+   ``read_run`` reads contiguous, with no sample missing; the answer comes on
+   ``/dvt/recorder/snapshot_result``.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -20,12 +25,14 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.duration import Duration
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, String
 
 from conftest import Procs, script, wait_for
+from dvt_driver.recording.node import SNAPSHOT_REQUEST, SNAPSHOT_RESULT
 from dvt_model.contract import CURRENT_NAMES, CURRENTS, JOINT_STATES, SPEED_NAMES
 from dvt_model.recording import read_run, typestore
 
@@ -197,3 +204,74 @@ def test_best_effort_publisher_is_recorded(procs: Procs, rclpy_context: Any,
     run = read_run(bag)
     assert run.n >= 0.95 * n, f"recorded {run.n} of {n}"
     assert set(run.stamps_ns.tolist()) <= {_Publisher.stamp(i) for i in range(n)}
+
+
+class _NowPublisher(_Publisher):
+    """Stamps at the host's ROS time (as the driver's clock mapping does), 500 Hz."""
+
+    base = time.time_ns() // 10**6 * 10**6
+
+    @staticmethod
+    def stamp(i: int) -> int:
+        return _NowPublisher.base + i * 10**9 // int(RATE)
+
+
+def test_rolling_recorder_writes_a_window_as_a_bag(procs: Procs, rclpy_context: Any,
+                                                    tmp_path: Path) -> None:
+    ring = tmp_path / "ring"
+    rec = procs.start("dvt-recorder", "--ros-args", "-p", f"output:={ring}",
+                      "-p", "ring_minutes:=1.0", "-p", "ring_segment_seconds:=0.5",
+                      "-p", "snapshot_margin_s:=0.5")
+    pub = _NowPublisher(rclpy_context)
+    answers: list[dict[str, Any]] = []
+
+    def on_result(msg: String) -> None:
+        answers.append(json.loads(msg.data))
+
+    req = pub.node.create_publisher(String, SNAPSHOT_REQUEST, QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    pub.node.create_subscription(
+        String, SNAPSHOT_RESULT, on_result,
+        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    n = 2000
+    out = tmp_path / "window"
+    try:
+        pub.wait_matched()
+        wait_for(lambda: req.get_subscription_count() >= 1, 30.0,
+                 "the recorder to subscribe to the snapshot request")
+        # request the window while it is still in the future: served once it has passed
+        _NowPublisher.base = time.time_ns() // 10**6 * 10**6 + 10**8  # first stamp in 0.1 s
+        lo, hi = 300, 1700
+        req.publish(String(data=json.dumps({"from": pub.stamp(lo) * 1e-9,
+                                            "to": pub.stamp(hi) * 1e-9,
+                                            "out": str(out), "id": "w1"})))
+        req.publish(String(data=json.dumps({"from": 1.0, "to": 0.5, "out": "x", "id": "bad"})))
+        while time.time_ns() < _NowPublisher.base:
+            time.sleep(0.01)
+        pub.run(n)
+        assert pub.wait_acked(), "the recorder did not acknowledge every sample"
+
+        executor = SingleThreadedExecutor(context=rclpy_context)
+        executor.add_node(pub.node)
+
+        def answered() -> bool:
+            executor.spin_once(timeout_sec=0.05)
+            return {a.get("id") for a in answers} >= {"w1", "bad"}
+
+        wait_for(answered, 60.0, "both snapshot answers")
+    finally:
+        pub.close()
+    assert procs.stop(rec) == 0, procs.log(rec)
+    by_id = {a["id"]: a for a in answers}
+    assert by_id["bad"]["ok"] is False and "'to'" in by_id["bad"]["error"]
+    good = by_id["w1"]
+    assert good["ok"] is True, good
+    assert good["segments"] >= 3 and not good["truncated"], good
+    segments = sorted(p for p in ring.iterdir() if p.name.startswith("seg-"))
+    assert len(segments) >= 6  # 4 s of data in 0.5 s segments
+    run = read_run(out)
+    assert run.unmatched == 0
+    np.testing.assert_array_equal(run.stamps_ns, [pub.stamp(i) for i in range(lo, hi + 1)])
+    np.testing.assert_array_equal(run.speeds[:, 0], np.arange(lo, hi + 1, dtype=float))
+    assert good["counts"][JOINT_STATES] == hi - lo + 1 == good["counts"][CURRENTS]

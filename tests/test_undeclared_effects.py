@@ -18,16 +18,17 @@ import yaml
 from dvt_driver.plant.hidden import parse_hidden
 from dvt_driver.plant.offline import record_offline
 from dvt_driver.run.experiment_core import build
+from dvt_identify import identifiability
 from dvt_identify.description import load_description
-from dvt_identify.loop import LoopConfig, identify
-from dvt_identify.pipeline import drop_unexcited_model_effects, load_segments
+from dvt_identify.loop import IdentificationResult, LoopConfig, identify
+from dvt_identify.pipeline import load_segments
 from dvt_model.params import load_parameters
 
 pytestmark = pytest.mark.slow
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 
 
-def _identify(name: str, tmp_path: Path):
+def _identify(name: str, tmp_path: Path) -> IdentificationResult:
     bag = BAGS / name
     truth = yaml.safe_load((bag / "truth.yaml").read_text())
     made = yaml.safe_load((bag / "run.yaml").read_text())
@@ -37,12 +38,13 @@ def _identify(name: str, tmp_path: Path):
     desc = load_description("dvt")
     est = load_segments([bag], desc)
     vals = load_segments([val], desc)
-    desc, _ = drop_unexcited_model_effects(desc, est)
+    chk = identifiability.check(desc, est)
+    desc = identifiability.apply(desc, chk)
     cfg = replace(LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate), max_effects=1)
-    return identify(est, vals, desc, cfg)
+    return identify(est, vals, desc, cfg, check=chk)
 
 
-def test_clean_plant_accepts_nothing(tmp_path):
+def test_clean_plant_accepts_nothing(tmp_path: Path) -> None:
     r = _identify("ident-none-1", tmp_path)
     assert r.accepted == []
     assert r.final is r.baseline
@@ -64,7 +66,8 @@ def test_clean_plant_accepts_nothing(tmp_path):
     # S-shaped rise; one engagement dead time shared by the three bands explains it
     ("ident-wet_brake", {"brake_engagement"}),
 ])
-def test_hidden_effect_is_ranked_first_and_accepted(bag, expected, tmp_path):
+def test_hidden_effect_is_ranked_first_and_accepted(bag: str, expected: set[str],
+                                                   tmp_path: Path) -> None:
     r = _identify(bag, tmp_path)
     assert r.rounds, "no scoring round ran"
     first = r.rounds[0][0]
@@ -72,4 +75,9 @@ def test_hidden_effect_is_ranked_first_and_accepted(bag, expected, tmp_path):
     accepted = r.accepted
     assert accepted and accepted[0].score.effect.name in expected
     gain = r.final.val.mean_fit - r.baseline.val.mean_fit
-    assert gain >= 0.1, (r.baseline.val.fit_percent, r.final.val.fit_percent)
+    assert gain > 0.0, (r.baseline.val.fit_percent, r.final.val.fit_percent)
+    # accepted by the validation test (Diebold-Mariano, HAC variance), with its evidence
+    dm = accepted[0].validation
+    assert dm is not None and dm.gain > 0 and dm.p_value < r.config.alpha, dm
+    assert r.drift is not None
+    assert r.drift.drifting == [], r.drift.summary()

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # EMPS real-data example: import both EMPS records into rosbag2/MCAP bags, then identify
-# (estimate on emps_estimation, validate on emps_validation) and write the report.
+# (estimate on emps_estimation, validate on emps_validation) and write the report; then score
+# the accepted friction model by the EMPS benchmark's own protocol (simulated position, 20-sample
+# initialisation window, test on emps_validation) with examples/emps/benchmark.py.
 #
 #   examples/emps/run.sh OUTDIR
 #
@@ -36,4 +38,9 @@ for rec in estimation validation; do
 done
 "$bin/dvt-identify" "$out/bags/emps_estimation" --validate "$out/bags/emps_validation" \
   --description emps --out "$out"
+# The benchmark protocol: position-state model (descriptions/emps-position.yaml) with the effects
+# the loop accepted, fitted on the estimation record for the simulated position.
+"$bin/python" "$here/benchmark.py" --data "$emps" --report "$out/report.json" --out "$out" \
+  > /dev/null
 echo "report: $out/report.md ($out/report.json)" >&2
+echo "benchmark: $out/benchmark.md ($out/benchmark.json)" >&2

@@ -1,11 +1,12 @@
-from setuptools import find_packages, setup
+from setuptools import find_namespace_packages, setup
 
 package_name = 'dvt_identify'
 
 setup(
     name=package_name,
     version='0.1.0',
-    packages=find_packages(exclude=['test']),
+    # namespace discovery: data folders (param sets, presets, descriptions) are packages too
+    packages=find_namespace_packages(include=['dvt_identify', 'dvt_identify.*'], exclude=['*.__pycache__']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),

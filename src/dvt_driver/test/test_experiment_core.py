@@ -238,3 +238,22 @@ def test_cli_settings_are_parsed_as_yaml() -> None:
         parse_settings(["amplitude"])
     with pytest.raises(ExperimentError, match="value is not valid YAML"):
         parse_settings(["x=[1,"])
+
+
+def test_offline_run_measures_positions_and_the_bag_carries_them(tmp_path: object) -> None:
+    from pathlib import Path
+
+    from dvt_driver.plant.offline import record_offline
+    from dvt_model.contract import JOINT_STATES
+    from dvt_model.load import load_joint_load
+    from dvt_model.recording.read import read_topics
+    e = Experiment("pos", "", (Step(0.0, MotorCurrent(3.0)),
+                               Step(0.3, BrakeCurrents((2.0, 0.0, 0.0)))), (), 1.0)
+    r = run_offline(e, load_parameters("physical"), seed=2, load=load_joint_load("arm"))
+    assert r.positions.shape == r.theta_true.shape == (1000, 2)
+    # encoder floors: within one count of the true angles (sun 4096, carrier 3 16384 counts/rev)
+    assert np.all(np.abs(r.positions - r.theta_true) <= [2 * np.pi / 4096, 2 * np.pi / 16384])
+    assert r.positions[-1, 0] > 10.0
+    bag = record_offline(Path(str(tmp_path)) / "pos", e, load_parameters("physical"), seed=2)
+    js = read_topics(bag, [JOINT_STATES])[JOINT_STATES]
+    assert js.position.shape == (1000, 2) and np.all(np.isfinite(js.position))

@@ -1,24 +1,79 @@
 """``dvt-identify``: fit, trace and report from bags.
 
     dvt-identify BAG... --validate BAG... --out DIR [--description FILE_OR_NAME] [--no-augment]
+    dvt-identify BAG... --check [--out DIR] [--description FILE_OR_NAME]
 
 Runs the identification pipeline (:func:`dvt_identify.pipeline.run`): reads the estimation and
 validation bags named by the actuator description (default ``dvt``), checks and pre-processes
 them, fits the baseline output-error model, runs the augment loop and writes
 ``DIR/report.json``, ``DIR/report.md`` and PNG plots. Progress goes to stderr; the last line on
-stdout summarises the result. Bad input ends with exit status 2 and one line
-``dvt-identify: error: <reason>`` on stderr.
+stdout summarises the result.
+
+Exit status (as ``dvt-bag``): 0 success; 1 bad data or files (a bag that cannot be read or
+checked, a bad description, a failed fit), with one line ``dvt-identify: error: <reason>`` on
+stderr; 2 bad usage (unknown option, missing ``--validate``/``--out``), argparse's usage
+message. ``dvt-bag recover PATH`` is suggested only for a bag directory (or ``.mcap`` file)
+whose MCAP cannot be read.
+
+``--check`` only asks whether the estimation bags are enough (no fit,
+:mod:`dvt_identify.identifiability`): per parameter of the baseline model whether the recording
+excites it, and for those it does not, the experiment (``dvt-experiment ...``) that would; the
+verdict goes to stdout (``DIR/check.json`` with ``--out``). Exit status 0 either way.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from dvt_identify.description import DEFAULT_DESCRIPTION
 from dvt_identify.errors import DvtIdentifyError
-from dvt_identify.pipeline import run
+from dvt_identify.pipeline import check_recording, run
+
+EXIT_DATA = 1
+"""Exit status for bad data or files (as ``dvt-bag``)."""
+EXIT_USAGE = 2
+"""Exit status for bad usage (argparse's)."""
+_RECOVER = re.compile(r" \((?:if the recording was killed, try|the recording was probably "
+                      r"killed; run) `dvt-bag recover (?P<path>[^`]+)`[^)]*\)")
+
+
+def _has_mcap(path: Path) -> bool:
+    """``path`` is a ``.mcap`` file or a directory holding one (what ``dvt-bag recover``
+    rebuilds)."""
+    if path.is_file():
+        return path.suffix == ".mcap"
+    return path.is_dir() and any(path.glob("*.mcap"))
+
+
+def error_line(exc: BaseException) -> str:
+    """The one error line for ``exc``: its first line, without a ``dvt-bag recover``
+    suggestion for a path that holds no MCAP (a README is not a killed recording)."""
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+    def drop(m: re.Match[str]) -> str:
+        return m.group(0) if _has_mcap(Path(m.group("path"))) else " (not a bag directory)"
+
+    return _RECOVER.sub(drop, text)
+
+
+def _check(args: argparse.Namespace) -> int:
+    chk, data_warnings = check_recording(args.bags, args.description)
+    for w in data_warnings:
+        print(f"warning: {w}")
+    for line in chk.summary():
+        print(line)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        rep = {"estimation_bags": list(args.bags), "warnings": data_warnings, **chk.as_dict()}
+        (out / "check.json").write_text(json.dumps(rep, indent=2, allow_nan=False) + "\n")
+    print("enough: " + ("yes" if chk.enough else "no, record " + " and ".join(chk.experiments())))
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -27,9 +82,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="dvt-identify",
         description="Output-error identification with residual tracing from rosbag2 bags.")
     ap.add_argument("bags", nargs="+", help="estimation bag directories (fitted jointly)")
-    ap.add_argument("--validate", nargs="+", required=True, metavar="BAG",
-                    help="validation bag directories (never used for fitting)")
-    ap.add_argument("--out", required=True, help="output directory for the report")
+    ap.add_argument("--validate", nargs="+", metavar="BAG",
+                    help="validation bag directories (never used for fitting; required "
+                         "unless --check)")
+    ap.add_argument("--out", help="output directory for the report (required unless --check)")
+    ap.add_argument("--check", action="store_true",
+                    help="only check whether the bags determine the model's parameters (no "
+                         "fit); names the experiment for those they do not")
     ap.add_argument("--description", default=DEFAULT_DESCRIPTION,
                     help=f"actuator description: YAML file or bundled name (default "
                          f"{DEFAULT_DESCRIPTION})")
@@ -41,17 +100,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="write report.json and report.md only (no PNG plots; faster)")
     ap.add_argument("--quiet", action="store_true", help="no progress on stderr")
     args = ap.parse_args(argv)
+    if not args.check and (not args.validate or not args.out):
+        ap.error("--validate and --out are required (unless --check)")
     try:
+        if args.check:
+            return _check(args)
         result = run(args.bags, args.validate, args.out, args.description,
                      augment=not args.no_augment, starts=args.starts,
                      fit_decimate=args.fit_decimate, quiet=args.quiet,
                      plots=not args.no_plots)
-    except DvtIdentifyError as exc:
-        print(f"dvt-identify: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"dvt-identify: error: {exc}", file=sys.stderr)
-        return 2
+    except (DvtIdentifyError, OSError) as exc:
+        print(f"dvt-identify: error: {error_line(exc)}", file=sys.stderr)
+        return EXIT_DATA
     fin = result.final
     acc = [d.score.label for d in result.accepted] or ["none"]
     print("validation fit: " + ", ".join(

@@ -121,11 +121,10 @@ class _Live:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import DurabilityPolicy, QoSProfile
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
 
-        from dvt_model import rosutil
+        from dvt_model import contract, rosutil
 
         self.procs = [
             subprocess.Popen([str(BIN / "dvt_model_node"), "--ros-args", "-p",
@@ -148,13 +147,12 @@ class _Live:
         def on_result(m: String) -> None:
             self.results.append(json.loads(m.data))
 
-        self.node.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, on_pred,
+        self.node.create_subscription(JointState, contract.MODEL_JOINT_STATES, on_pred,
                                       rosutil.SENSOR_QOS)
-        self.node.create_subscription(
-            String, "/dvt/identify/result", on_result,
-            QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.request = self.node.create_publisher(String, "/dvt/identify/request", 10)
-        self.until(lambda: self.node.count_publishers(rosutil.MODEL_JOINT_STATES) > 0
+        self.node.create_subscription(String, contract.IDENTIFY_RESULT, on_result,
+                                      rosutil.LATCHED_QOS)
+        self.request = self.node.create_publisher(String, contract.IDENTIFY_REQUEST, 10)
+        self.until(lambda: self.node.count_publishers(contract.MODEL_JOINT_STATES) > 0
                    and (not identifier or self.request.get_subscription_count() > 0),
                    60.0, "nodes to start")
 

@@ -19,7 +19,7 @@ A description is a YAML file (see ``descriptions/emps.yaml`` for a complete exam
          initial: {band_gain: 8}}
     candidates:
       - {effect: coulomb_friction, where: carriage, offset: true}
-    preprocess: {lowpass: null, decimate: 1, fit_decimate: 1}
+    preprocess: {lowpass: null, decimate: 1, fit_decimate: auto}
     checks: {min_samples: 200, max_gap_samples: 3, max_saturated_fraction: 0.01}
     fit: {starts: 4, refit_starts: 2, alpha: 0.01, min_validation_gain: 0.1, max_effects: 4,
           max_tries_per_round: 3, seed: 0}
@@ -65,12 +65,14 @@ class Preprocess:
         lowpass: ``{cutoff_hz, order, zero_phase}`` or ``None``.
         decimate: decimation of all data (estimation and validation).
         fit_decimate: further decimation of the estimation data for fitting and scoring only;
-            figures are computed at the full rate.
+            figures are computed at the full rate. 0 (``auto`` in the file, the default): each
+            segment's factor follows its rate and the model's dynamics
+            (:func:`dvt_identify.fit.fit_decimation`).
     """
 
     lowpass: dict[str, Any] | None = None
     decimate: int = 1
-    fit_decimate: int = 1
+    fit_decimate: int = 0
 
 
 @dataclass(frozen=True)
@@ -167,6 +169,26 @@ class Description:
                                         if b in init})
             out.append(eff)
         return out
+
+
+def _fit_decimate(raw: object) -> int:
+    """``preprocess.fit_decimate``: ``auto`` (or null) -> 0, else an integer >= 1.
+
+    Raises:
+        ValueError: anything else (the caller names the file).
+    """
+    if raw is None or (isinstance(raw, str) and raw.strip().lower() == "auto"):
+        return 0
+    bad = f"fit_decimate: expected auto or an integer >= 1, got {raw!r}"
+    if isinstance(raw, bool) or not isinstance(raw, int | float | str):
+        raise ValueError(bad)
+    try:
+        q = int(float(raw))
+    except ValueError:
+        raise ValueError(bad) from None
+    if q < 1 or q != float(raw):
+        raise ValueError(bad)
+    return q
 
 
 def available_descriptions() -> list[str]:
@@ -293,7 +315,7 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
     fit = data.get("fit") or {}
     try:
         preprocess = Preprocess(lowpass=pre.get("lowpass"), decimate=int(pre.get("decimate", 1)),
-                                fit_decimate=int(pre.get("fit_decimate", 1)))
+                                fit_decimate=_fit_decimate(pre.get("fit_decimate", "auto")))
         checks = Checks(**{k: type(getattr(Checks(), k))(v) for k, v in chk.items()})
         fopts = FitOptions(**{k: type(getattr(FitOptions(), k))(v) for k, v in fit.items()})
     except (TypeError, ValueError, AttributeError) as exc:

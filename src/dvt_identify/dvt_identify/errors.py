@@ -40,3 +40,8 @@ class BenchError(DvtIdentifyError, ValueError):
 
 class FitError(DvtIdentifyError, RuntimeError):
     """A fit could not be carried out (bad shapes, simulation diverged, no finite start)."""
+
+
+class SupervisorError(DvtIdentifyError, ValueError):
+    """A supervisor setting or event is unusable (the message names the parameter, e.g.
+    ``supervisor.watch_s``, or the event field, and the value)."""

@@ -3,6 +3,8 @@
 A mapping says which column goes to which topic, joint and field. As YAML::
 
     time: t                              # column of time stamps [s], strictly increasing
+    # dt: 0.001                          # ... or a fixed sample period [s] (no time column)
+    range: [0, 20000]                    # optional: samples [start, stop) to keep
     derivative: {cutoff_hz: 100.0, order: 4}   # for d(...): zero-phase Butterworth, then
                                                # central difference; cutoff null = raw
     signals:
@@ -10,16 +12,22 @@ A mapping says which column goes to which topic, joint and field. As YAML::
       - {topic: /emps/joint_states, joint: carriage, field: velocity, expr: "d(qm)"}
       - {topic: /emps/drive, joint: carriage, field: effort, expr: "vir * gtau"}
 
-or on the command line: ``--time t --signal /emps/drive carriage effort "vir*gtau"`` (repeat).
+or on the command line: ``--time t --signal /emps/drive carriage effort "vir*gtau"`` (repeat),
+``--dt 0.001`` instead of ``--time`` for a file without a time column, ``--range 100:20100``.
 
-Expressions: ``COLUMN`` or ``d(COLUMN)`` (time derivative), optionally followed by ``* FACTOR`` or
+Expressions: ``COLUMN``, ``d(COLUMN)`` (time derivative) or ``dN(COLUMN)`` (the N-th derivative,
+e.g. ``d2(qm)`` for an acceleration), optionally followed by ``* FACTOR`` or
 ``/ FACTOR`` terms, where a factor is a number or a column (a scalar column such as ``gtau``, or
 one of the same length). Every message of one sample carries the identical ``header.stamp``
 (``round(t * 1e9)`` ns plus ``--start-time``), so the identifier aligns topics exactly.
 
 The derivative: the column is low-pass filtered forward and backward (zero phase, so no delay)
-by a Butterworth filter of the given order and cutoff, then differentiated by central differences
-(one-sided at the two ends, ``numpy.gradient`` on the time column).
+by a Butterworth filter of the given order and cutoff, then differentiated N times by central
+differences (one-sided at the two ends, ``numpy.gradient`` on the time column). Derivatives are
+taken on the whole record before a ``range`` is cut out, so the cut has no end effects.
+
+CSV files: a header row, then numbers. Empty trailing cells (lines ending in a comma, as many
+loggers write them) and columns with an empty header and no values are ignored.
 """
 
 from __future__ import annotations
@@ -42,7 +50,10 @@ from dvt_identify.data import FIELDS, JointStateSeries, write_jointstate_bag
 from dvt_identify.errors import DvtIdentifyError, ImportDataError
 
 Array = NDArray[np.float64]
-_EXPR = re.compile(r"^\s*(d\(\s*([A-Za-z_][\w.]*)\s*\)|([A-Za-z_][\w.]*))\s*((?:[*/]\s*[^*/]+)*)$")
+_EXPR = re.compile(r"^\s*(d(\d*)\(\s*([A-Za-z_][\w.]*)\s*\)|([A-Za-z_][\w.]*))\s*"
+                   r"((?:[*/]\s*[^*/]+)*)$")
+MAX_DERIVATIVE = 4
+"""Highest derivative order an expression may ask for (noise grows with every order)."""
 
 
 @dataclass(frozen=True)
@@ -59,10 +70,14 @@ class SignalMap:
 class ImportMapping:
     """A full mapping (see module docstring)."""
 
-    time: str
+    time: str | None
     signals: tuple[SignalMap, ...]
     cutoff_hz: float | None = None
     order: int = 4
+    dt: float | None = None
+    """Sample period [s] when there is no time column (exactly one of ``time`` and ``dt``)."""
+    sample_range: tuple[int, int | None] | None = None
+    """Samples ``[start, stop)`` to keep (``stop`` None: to the end)."""
 
 
 def load_columns(path: str | Path) -> dict[str, Array]:
@@ -85,20 +100,45 @@ def load_columns(path: str | Path) -> dict[str, Array]:
             rows = list(csv.reader(fh))
         if len(rows) < 2:
             raise ImportDataError(f"{p}: expected a header row and data rows")
-        header = [h.strip() for h in rows[0]]
-        data = np.empty((len(rows) - 1, len(header)))
-        for i, row in enumerate(rows[1:], start=2):
-            if len(row) != len(header):
-                raise ImportDataError(f"{p}: line {i}: {len(row)} cells, header has "
-                                      f"{len(header)}")
-            for j, cell in enumerate(row):
-                try:
-                    data[i - 2, j] = float(cell)
-                except ValueError:
-                    raise ImportDataError(f"{p}: line {i}, column {header[j]}: not a number: "
-                                          f"{cell!r}") from None
-        return {h: data[:, j] for j, h in enumerate(header)}
+        return _csv_columns(p, rows)
     raise ImportDataError(f"{p}: unknown format {p.suffix!r} (expected .npz or .csv)")
+
+
+def _trim(row: list[str]) -> list[str]:
+    """``row`` without its empty trailing cells."""
+    end = len(row)
+    while end and not row[end - 1].strip():
+        end -= 1
+    return row[:end]
+
+
+def _csv_columns(p: Path, rows: list[list[str]]) -> dict[str, Array]:
+    """Numeric columns of CSV ``rows`` (header first); see the module docstring's tolerance."""
+    header = [h.strip() for h in _trim(rows[0])]
+    if not header:
+        raise ImportDataError(f"{p}: line 1: empty header row")
+    for j, h in enumerate(header):
+        if not h:
+            raise ImportDataError(f"{p}: line 1: column {j + 1} has an empty name")
+    dupes = sorted({h for h in header if header.count(h) > 1})
+    if dupes:
+        raise ImportDataError(f"{p}: line 1: duplicate column name(s) {', '.join(dupes)}")
+    body = [(i, _trim(row)) for i, row in enumerate(rows[1:], start=2)]
+    body = [(i, row) for i, row in body if row]  # blank lines
+    if not body:
+        raise ImportDataError(f"{p}: expected data rows after the header")
+    data = np.empty((len(body), len(header)))
+    for k, (i, row) in enumerate(body):
+        if len(row) != len(header):
+            raise ImportDataError(f"{p}: line {i}: {len(row)} cells, header has "
+                                  f"{len(header)} ({', '.join(header)})")
+        for j, cell in enumerate(row):
+            try:
+                data[k, j] = float(cell)
+            except ValueError:
+                raise ImportDataError(f"{p}: line {i}, column {header[j]!r} (column {j + 1}): "
+                                      f"not a number: {cell!r}") from None
+    return {h: data[:, j] for j, h in enumerate(header)}
 
 
 def _column(cols: Mapping[str, Array], name: str, src: str, n: int | None) -> Array:
@@ -118,13 +158,17 @@ def _column(cols: Mapping[str, Array], name: str, src: str, n: int | None) -> Ar
     return c
 
 
-def derivative(x: ArrayLike, t: ArrayLike, cutoff_hz: float | None, order: int = 4) -> Array:
-    """Zero-phase Butterworth low-pass (if ``cutoff_hz``) then central difference on ``t``.
+def derivative(x: ArrayLike, t: ArrayLike, cutoff_hz: float | None, order: int = 4,
+               n: int = 1) -> Array:
+    """Zero-phase Butterworth low-pass (if ``cutoff_hz``) then ``n`` central differences on ``t``.
 
     Args:
         x: signal, shape (N,).
         t: time [s], shape (N,), strictly increasing.
+        n: derivative order, 1..:data:`MAX_DERIVATIVE` (result in [x]/s^n).
     """
+    if not 1 <= n <= MAX_DERIVATIVE:
+        raise ImportDataError(f"derivative order {n}: expected 1..{MAX_DERIVATIVE}")
     x = np.asarray(x, dtype=float)
     t = np.asarray(t, dtype=float)
     if cutoff_hz is not None:
@@ -133,7 +177,9 @@ def derivative(x: ArrayLike, t: ArrayLike, cutoff_hz: float | None, order: int =
             raise ImportDataError(f"derivative cutoff {cutoff_hz} Hz not in (0, {fs / 2:g}) Hz")
         sos = signal.butter(order, cutoff_hz, fs=fs, output="sos")
         x = signal.sosfiltfilt(sos, x)
-    return np.asarray(np.gradient(x, t))
+    for _ in range(n):
+        x = np.gradient(x, t)
+    return np.asarray(x, dtype=float)
 
 
 def evaluate(expr: str, cols: Mapping[str, Array], t: Array, mapping: ImportMapping,
@@ -141,14 +187,19 @@ def evaluate(expr: str, cols: Mapping[str, Array], t: Array, mapping: ImportMapp
     """Value of ``expr`` (see module docstring), shape (N,)."""
     m = _EXPR.match(expr)
     if m is None:
-        raise ImportDataError(f"{src}: expression {expr!r}: expected COLUMN or d(COLUMN) "
-                              "followed by '* FACTOR' / '/ FACTOR' terms")
+        raise ImportDataError(f"{src}: expression {expr!r}: expected COLUMN, d(COLUMN) or "
+                              "dN(COLUMN), followed by '* FACTOR' / '/ FACTOR' terms")
     n = t.size
-    if m.group(2):
-        x = derivative(_column(cols, m.group(2), src, n), t, mapping.cutoff_hz, mapping.order)
+    if m.group(3):
+        k = int(m.group(2)) if m.group(2) else 1
+        if not 1 <= k <= MAX_DERIVATIVE:
+            raise ImportDataError(f"{src}: expression {expr!r}: derivative order {k}, expected "
+                                  f"1..{MAX_DERIVATIVE}")
+        x = derivative(_column(cols, m.group(3), src, n), t, mapping.cutoff_hz, mapping.order,
+                       n=k)
     else:
-        x = _column(cols, m.group(3), src, n).copy()
-    for op, term in re.findall(r"([*/])\s*([^*/]+)", m.group(4) or ""):
+        x = _column(cols, m.group(4), src, n).copy()
+    for op, term in re.findall(r"([*/])\s*([^*/]+)", m.group(5) or ""):
         term = term.strip()
         try:
             f: Array | float = float(term)
@@ -171,8 +222,22 @@ def parse_mapping(data: Any, source: str) -> ImportMapping:
     """A :class:`ImportMapping` from parsed YAML; errors name ``source`` and the key."""
     if not isinstance(data, dict):
         raise ImportDataError(f"{source}: expected a mapping")
-    if "time" not in data:
-        raise ImportDataError(f"{source}: missing key 'time'")
+    has_time = data.get("time") is not None
+    has_dt = data.get("dt") is not None
+    if has_time == has_dt:
+        raise ImportDataError(f"{source}: give exactly one of 'time' (a time column) and 'dt' "
+                              f"(a sample period [s]); got time={data.get('time')!r}, "
+                              f"dt={data.get('dt')!r}")
+    dt: float | None = None
+    if has_dt:
+        try:
+            dt = float(data["dt"])
+        except (TypeError, ValueError):
+            raise ImportDataError(f"{source}: dt: expected a number of seconds, got "
+                                  f"{data['dt']!r}") from None
+        if not (np.isfinite(dt) and dt > 0):
+            raise ImportDataError(f"{source}: dt: expected a finite period > 0 s, got {dt!r}")
+    rng = _parse_range(data.get("range"), source)
     sigs = data.get("signals")
     if not isinstance(sigs, list) or not sigs:
         raise ImportDataError(f"{source}: 'signals' must be a non-empty list")
@@ -186,9 +251,34 @@ def parse_mapping(data: Any, source: str) -> ImportMapping:
         out.append(SignalMap(str(s["topic"]), str(s["joint"]), str(s["field"]), str(s["expr"])))
     der = data.get("derivative") or {}
     cutoff = der.get("cutoff_hz")
-    return ImportMapping(time=str(data["time"]), signals=tuple(out),
-                    cutoff_hz=None if cutoff is None else float(cutoff),
-                    order=int(der.get("order", 4)))
+    return ImportMapping(time=str(data["time"]) if has_time else None, signals=tuple(out),
+                         cutoff_hz=None if cutoff is None else float(cutoff),
+                         order=int(der.get("order", 4)), dt=dt, sample_range=rng)
+
+
+def _parse_range(raw: Any, source: str) -> tuple[int, int | None] | None:
+    """``[start, stop]`` / ``"start:stop"`` (stop may be empty or null) -> a sample range."""
+    if raw is None:
+        return None
+    parts: list[Any]
+    if isinstance(raw, str):
+        parts = [p.strip() or None for p in raw.split(":")]
+    elif isinstance(raw, list | tuple):
+        parts = list(raw)
+    else:
+        parts = []
+    if len(parts) != 2:
+        raise ImportDataError(f"{source}: range: expected START:STOP or [start, stop] (sample "
+                              f"indices), got {raw!r}")
+    try:
+        start = 0 if parts[0] is None else int(parts[0])
+        stop = None if parts[1] is None else int(parts[1])
+    except (TypeError, ValueError):
+        raise ImportDataError(f"{source}: range: expected whole sample indices, got "
+                              f"{raw!r}") from None
+    if start < 0 or (stop is not None and stop <= start):
+        raise ImportDataError(f"{source}: range: expected 0 <= start < stop, got {raw!r}")
+    return start, stop
 
 
 def build_topics(cols: Mapping[str, Array], mapping: ImportMapping, src: str,
@@ -199,17 +289,36 @@ def build_topics(cols: Mapping[str, Array], mapping: ImportMapping, src: str,
         ImportDataError: missing column, NaN, time not strictly increasing, bad field, a field
             given for some joints of a topic but not for others.
     """
-    t = _column(cols, mapping.time, src, None)
+    if mapping.time is not None:
+        t = _column(cols, mapping.time, src, None)
+        what = f"time column {mapping.time!r}"
+    else:
+        lengths = {k: np.asarray(v).size for k, v in cols.items() if np.asarray(v).ndim == 1
+                   and np.asarray(v).size > 1}
+        if not lengths:
+            raise ImportDataError(f"{src}: no column with more than one sample")
+        n_rows = max(lengths.values())
+        t = np.arange(n_rows, dtype=float) * float(mapping.dt or 0.0)
+        what = f"dt {mapping.dt!r} s"
     if t.ndim != 1 or t.size < 2:
-        raise ImportDataError(f"{src}: time column {mapping.time!r}: need at least 2 samples")
+        raise ImportDataError(f"{src}: {what}: need at least 2 samples")
     d = np.diff(t)
     if np.any(d <= 0):
         i = int(np.argmax(d <= 0))
-        raise ImportDataError(f"{src}: time column {mapping.time!r} not strictly increasing at "
+        raise ImportDataError(f"{src}: {what} not strictly increasing at "
                               f"row {i + 1} ({t[i]!r} -> {t[i + 1]!r})")
+    keep = slice(None)
+    if mapping.sample_range is not None:
+        start, stop = mapping.sample_range
+        if start >= t.size - 1 or (stop is not None and stop > t.size):
+            raise ImportDataError(f"{src}: range {start}:{'' if stop is None else stop} outside "
+                                  f"the {t.size} samples")
+        keep = slice(start, stop)
+    t_all = t
+    t = t_all[keep]
     stamps = np.round((t - t[0] + start_time) * 1e9).astype(np.int64)
     if np.any(np.diff(stamps) <= 0):
-        raise ImportDataError(f"{src}: time column {mapping.time!r}: steps below 1 ns")
+        raise ImportDataError(f"{src}: {what}: steps below 1 ns")
     by_topic: dict[str, dict[str, dict[str, Array]]] = {}
     for s in mapping.signals:
         if s.field not in FIELDS:
@@ -219,7 +328,7 @@ def build_topics(cols: Mapping[str, Array], mapping: ImportMapping, src: str,
         fields = joints.setdefault(s.joint, {})
         if s.field in fields:
             raise ImportDataError(f"{src}: {s.topic} {s.joint} {s.field} mapped twice")
-        fields[s.field] = evaluate(s.expr, cols, t, mapping, src)
+        fields[s.field] = evaluate(s.expr, cols, t_all, mapping, src)[keep]
     out: dict[str, JointStateSeries] = {}
     for topic, joints in by_topic.items():
         names = tuple(joints)
@@ -252,6 +361,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="output bag directory (must not exist)")
     ap.add_argument("--mapping", help="YAML mapping file (see docs)")
     ap.add_argument("--time", help="time column [s] (overrides the mapping's)")
+    ap.add_argument("--dt", type=float, default=None,
+                    help="sample period [s] for a file without a time column")
+    ap.add_argument("--range", default=None, metavar="START:STOP",
+                    help="keep samples START..STOP-1 (derivatives use the whole record)")
     ap.add_argument("--signal", nargs=4, action="append", default=[],
                     metavar=("TOPIC", "JOINT", "FIELD", "EXPR"),
                     help="map EXPR to TOPIC JOINT FIELD (repeatable; added to the mapping)")
@@ -277,6 +390,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ImportDataError(f"{mp}: expected a mapping")
         if args.time:
             data["time"] = args.time
+            data.pop("dt", None)
+        if args.dt is not None:
+            data["dt"] = args.dt
+            data.pop("time", None)
+        if args.range is not None:
+            data["range"] = args.range
         sigs = list(data.get("signals") or [])
         sigs += [{"topic": s[0], "joint": s[1], "field": s[2], "expr": s[3]}
                  for s in args.signal]

@@ -13,36 +13,88 @@ not). When it ends, the accepted model is pushed to ``model_node`` through its s
 parameter services (``M``, ``D``, ``effects``; see :mod:`dvt_identify.push`), so the live
 residual on ``/dvt/model/residual`` reflects the refitted model. A JSON summary goes to
 ``/dvt/identify/result`` (latched) and a status to ``/diagnostics``.
+
+With ``supervisor.enabled`` the node also closes the loop by itself (``docs/loop.md`` §3-4):
+change alarms on ``/dvt/model/change`` and the live residual on ``/dvt/model/residual`` feed
+the pure :class:`dvt_identify.supervisor.Supervisor`; its actions are performed here: a
+snapshot request to the rolling recorder, the refit of the window in a worker thread
+(:func:`dvt_identify.supervisor.refit`), the push / rollback through the model node's parameter
+services, every step on ``/diagnostics`` (``dvt_identify: supervisor``), and per episode
+``episode-N.json`` / ``.md`` in ``output_dir/episodes`` plus the record on
+``/dvt/identify/episode``.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import queue
+import sys
 import threading
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from dvt_identify.errors import DvtIdentifyError
+from dvt_identify import supervisor as sv
+from dvt_identify.errors import DvtIdentifyError, SupervisorError
 from dvt_identify.pipeline import model_push, run
 from dvt_model import rosutil
 from dvt_model.contract import (
+    CHANGE_QOS,
+    IDENTIFY_EPISODE,
     IDENTIFY_NODE,
     IDENTIFY_REQUEST,
     IDENTIFY_RESULT,
+    MODEL_CHANGE,
     MODEL_NODE,
+    MODEL_PARAMETERS,
+    MODEL_RESIDUAL,
+    RECORDER_SNAPSHOT_REQUEST,
+    RECORDER_SNAPSHOT_RESULT,
+    SNAPSHOT_REQUEST_QOS,
+    SPEED_NAMES,
     SRV_IDENTIFY_RUN,
 )
 
 LATCHED = rosutil.LATCHED_QOS
 """QoS of the result: a late subscriber still gets the last one (the contract's LATCHED_QOS)."""
+SUPERVISOR_DIAG = "dvt_identify: supervisor"
+"""``/diagnostics`` status name of the supervisor's steps."""
+TICK_PERIOD = 0.2
+"""Seconds between supervisor ticks (5 Hz)."""
+PARAMETER_TIMEOUT = 30.0
+"""Seconds to wait for the model node's parameters (it answers after its queued samples)."""
+_PARAM_TYPES = {"double": Parameter.Type.DOUBLE, "double_array": Parameter.Type.DOUBLE_ARRAY,
+                "string": Parameter.Type.STRING, "bool": Parameter.Type.BOOL,
+                "integer": Parameter.Type.INTEGER}
+
+
+def model_parameter(name: str, value: Any) -> Parameter:
+    """A typed rclpy parameter for the model node (an empty or ``None`` array/string is "not
+    set": an empty typed value, which the model node takes as its default)."""
+    spec = MODEL_PARAMETERS.get(name)
+    kind = _PARAM_TYPES.get(str(spec.type)) if spec is not None else None
+    if kind is None:
+        return Parameter(name, value=value)
+    if kind is Parameter.Type.DOUBLE_ARRAY:
+        return Parameter(name, kind, [float(v) for v in (value or [])])
+    if kind is Parameter.Type.STRING:
+        return Parameter(name, kind, "" if value is None else str(value))
+    if kind is Parameter.Type.DOUBLE:
+        return Parameter(name, kind, float(value))
+    if kind is Parameter.Type.BOOL:
+        return Parameter(name, kind, bool(value))
+    return Parameter(name, kind, int(value))
 
 
 class IdentifyNode(Node):
@@ -75,6 +127,8 @@ class IdentifyNode(Node):
         self.create_subscription(String, IDENTIFY_REQUEST, self._on_request, 10)
         self.create_timer(1.0, self._diagnostics)
         self.param_client = AsyncParameterClient(self, str(self.get_parameter("model_node").value))
+        self.supervisor: sv.Supervisor | None = None
+        self._setup_supervisor()
 
     # -- requests -----------------------------------------------------------------------
     def _bags(self, name: str) -> list[str]:
@@ -147,16 +201,17 @@ class IdentifyNode(Node):
         self.pub_result.publish(String(data=json.dumps(summary)))
         self.get_logger().info(f"identification {self.state}: {json.dumps(summary)}")
 
-    def _push(self, values: dict[str, Any]) -> dict[str, Any]:
+    def _push(self, values: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
         if not self.param_client.wait_for_services(timeout_sec=5.0):
             raise DvtIdentifyError(f"model node {self.param_client.remote_node_name!r} has no "
                                    "parameter services (not running?)")
-        params = [Parameter(k, value=v) for k, v in values.items()]
+        params = [model_parameter(k, v) for k, v in values.items()]
         future = self.param_client.set_parameters(params)
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + timeout
         while not future.done():
             if time.monotonic() > deadline:
-                raise DvtIdentifyError("model node did not answer set_parameters within 10 s")
+                raise DvtIdentifyError(f"model node did not answer set_parameters within "
+                                       f"{timeout:g} s")
             time.sleep(0.01)
         results = future.result().results
         refused = [f"{p.name}: {r.reason}" for p, r in zip(params, results, strict=True)
@@ -164,6 +219,266 @@ class IdentifyNode(Node):
         if refused:
             raise DvtIdentifyError(f"model node refused: {'; '.join(refused)}")
         return {"node": self.param_client.remote_node_name, **values}
+
+    # -- supervisor ---------------------------------------------------------------------
+    def _setup_supervisor(self) -> None:
+        """Declare ``supervisor.*``; when enabled, build the supervisor and wire its topics.
+
+        Raises:
+            SupervisorError: a parameter out of range (naming ``supervisor.<name>``).
+        """
+        p = sv.PREFIX
+        enabled = bool(self.declare_parameter(f"{p}.enabled", False, ParameterDescriptor(
+            description="run the self-closing loop (alarm -> refit -> push -> watch)",
+            read_only=True)).value)
+        def declare(name: str, default: Any, what: str) -> Any:
+            # dynamic typing: `-p supervisor.watch_s:=60` (an integer) is a time, too; the
+            # checks below (and SupervisorConfig.validated) name a value of the wrong kind
+            return self.declare_parameter(f"{p}.{name}", default, ParameterDescriptor(
+                description=what, read_only=True, dynamic_typing=True)).value
+
+        values: dict[str, Any] = {}
+        for name, default in sv.SupervisorConfig.parameters().items():
+            values[name] = declare(name, default, f"supervisor {name} (docs/loop.md §3)")
+        starts = declare("starts", 1, "multi-start count of the refit (0: the description's)")
+        decim = declare("fit_decimate", 0, "decimation of the refit (0: the description's)")
+        timeout = declare("snapshot_timeout_s", 60.0, "seconds after the window's end to wait "
+                          "for the recorder's snapshot")
+        for name, v in (("starts", starts), ("fit_decimate", decim)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise SupervisorError(f"{p}.{name}: expected an integer >= 0, got {v!r}")
+        if isinstance(timeout, bool) or not isinstance(timeout, int | float) \
+                or not (math.isfinite(timeout) and timeout > 0):
+            raise SupervisorError(f"{p}.snapshot_timeout_s: expected a time > 0 s, got "
+                                  f"{timeout!r}")
+        self.snapshot_timeout_s = float(timeout)
+        try:
+            config = sv.SupervisorConfig(**values).validated()
+        except TypeError as exc:  # pragma: no cover - parameter types are the declared ones
+            raise SupervisorError(f"{p}: {exc}") from exc
+        self.refit_settings = sv.RefitSettings(
+            description=str(self.get_parameter("description").value),
+            augment=bool(self.get_parameter("augment").value),
+            starts=int(starts) or None, fit_decimate=int(decim) or None)
+        if not enabled:
+            return
+        self.supervisor = sv.Supervisor(config)
+        self.session = f"{IDENTIFY_NODE}-{time.time_ns()}"
+        self.bad_alarms = 0
+        self.episode_dirs: dict[int, Path] = {}
+        self._snapshot_wait: dict[str, tuple[sv.RequestFit, Path, float]] = {}
+        self._done: queue.SimpleQueue[Callable[[float], list[sv.Action]]] = queue.SimpleQueue()
+        self._fit_thread: threading.Thread | None = None
+        self._current: _Reader | None = None
+        self.pub_snapshot = self.create_publisher(String, RECORDER_SNAPSHOT_REQUEST,
+                                                  rosutil.qos(SNAPSHOT_REQUEST_QOS))
+        self.pub_episode = self.create_publisher(String, IDENTIFY_EPISODE, rosutil.qos(CHANGE_QOS))
+        self.create_subscription(String, MODEL_CHANGE, self._on_alarm, rosutil.qos(CHANGE_QOS))
+        self.create_subscription(JointState, MODEL_RESIDUAL, self._on_residual,
+                                 rosutil.SENSOR_QOS)
+        self.create_subscription(String, RECORDER_SNAPSHOT_RESULT, self._on_snapshot,
+                                 rosutil.qos(CHANGE_QOS))
+        self.create_timer(TICK_PERIOD, self._tick)
+        self.get_logger().info(f"supervisor enabled: {config}")
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_alarm(self, msg: String) -> None:
+        if self.supervisor is None:
+            return
+        try:
+            alarm = json.loads(msg.data)
+            if not isinstance(alarm, dict):
+                raise SupervisorError(f"alarm: expected a JSON object, got {msg.data[:80]!r}")
+            actions = self.supervisor.on_alarm(alarm, self._now())
+        except (ValueError, SupervisorError) as exc:
+            self.bad_alarms += 1
+            self.get_logger().warning(f"bad alarm on {MODEL_CHANGE} ignored: {exc}")
+            return
+        self._perform(actions)
+
+    def _on_residual(self, msg: JointState) -> None:
+        if self.supervisor is None:
+            return
+        try:
+            values = dict(zip(msg.name, msg.velocity, strict=True))
+            residual = [float(values[n]) for n in SPEED_NAMES]
+            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            self.supervisor.observe(stamp, residual)
+        except (KeyError, ValueError, SupervisorError):
+            return  # a malformed residual sample is skipped (counted by the model node)
+
+    def _tick(self) -> None:
+        if self.supervisor is None:
+            return
+        now = self._now()
+        while not self._done.empty():
+            self._perform(self._done.get()(now))
+        for ident, (_req, _, deadline) in list(self._snapshot_wait.items()):
+            if now > deadline:
+                del self._snapshot_wait[ident]
+                self._perform(self.supervisor.fit_done(sv.FitOutcome(error=(
+                    f"no snapshot result from the recorder for {ident!r} within "
+                    f"{self.snapshot_timeout_s:g} s after the window's end (is dvt-recorder "
+                    "running with ring_minutes > 0?)")), now))
+        self._perform(self.supervisor.tick(now))
+
+    def _perform(self, actions: list[sv.Action]) -> None:
+        sup = self.supervisor
+        if sup is None:
+            return
+        for a in actions:
+            if isinstance(a, sv.Diagnostic):
+                # one call site per severity (rclpy refuses another severity at a call site)
+                if a.level >= rosutil.ERROR:
+                    self.get_logger().error(a.message)
+                elif a.level == rosutil.WARN:
+                    self.get_logger().warning(a.message)
+                else:
+                    self.get_logger().info(a.message)
+                self.pub_diag.publish(rosutil.diagnostic(
+                    self, SUPERVISOR_DIAG, a.level, a.message, {**a.values, **sup.status()}))
+            elif isinstance(a, sv.RequestFit):
+                self._request_snapshot(a)
+            elif isinstance(a, sv.Push):
+                self._start_push(a.parameters, rollback=False)
+            elif isinstance(a, sv.Rollback):
+                self._start_push(a.parameters, rollback=True)
+            elif isinstance(a, sv.Report):
+                self._write_episode(a)
+
+    def _episode_dir(self, episode: int) -> Path:
+        d = self.episode_dirs.get(episode)
+        if d is None:
+            base = Path(str(self.get_parameter("output_dir").value)) / "episodes"
+            d = base / f"episode-{episode}"
+            k = 1
+            while d.exists() or d.with_suffix(".json").exists():  # an earlier node's episode
+                k += 1
+                d = base / f"episode-{episode}-{k}"
+            self.episode_dirs[episode] = d
+        return d
+
+    def _request_snapshot(self, req: sv.RequestFit) -> None:
+        sup = self.supervisor
+        assert sup is not None
+        now = self._now()
+        work = self._episode_dir(req.episode)
+        if self.pub_snapshot.get_subscription_count() == 0:
+            self._perform(sup.fit_done(sv.FitOutcome(error=(
+                f"no recorder subscribed to {RECORDER_SNAPSHOT_REQUEST} (start dvt-recorder "
+                "with ring_minutes > 0)")), now))
+            return
+        work.mkdir(parents=True, exist_ok=True)
+        # the model in use (and what a rollback restores) is read while the snapshot is made
+        self._current = _Reader(self._get_model_parameters)
+        ident = f"{self.session}/episode-{req.episode}"
+        out = work / "snapshot"
+        self._snapshot_wait[ident] = (req, work, req.validation[1] + self.snapshot_timeout_s)
+        self.pub_snapshot.publish(String(data=json.dumps(
+            {"from": req.estimation[0], "to": req.validation[1], "out": str(out.resolve()),
+             "id": ident})))
+        self.get_logger().info(f"snapshot {ident}: [{req.estimation[0]:.3f}, "
+                               f"{req.validation[1]:.3f}] s requested -> {out}")
+
+    def _on_snapshot(self, msg: String) -> None:
+        sup = self.supervisor
+        if sup is None:
+            return
+        try:
+            data = json.loads(msg.data)
+            ident = data.get("id") if isinstance(data, dict) else None
+        except ValueError:
+            return
+        if not isinstance(ident, str) or ident not in self._snapshot_wait:
+            return  # another client's (or an earlier session's latched) result
+        req, work, _ = self._snapshot_wait.pop(ident)
+        if not data.get("ok"):
+            self._perform(sup.fit_done(sv.FitOutcome(error=(
+                f"snapshot {ident} failed: {data.get('error')}")), self._now()))
+            return
+        if data.get("truncated"):
+            self.get_logger().warning(f"snapshot {ident}: the window starts before the ring's "
+                                      "oldest segment (truncated)")
+        if self._fit_thread is not None and self._fit_thread.is_alive():
+            self._perform(sup.fit_done(sv.FitOutcome(error="busy: the previous refit is still "
+                                                     "running"), self._now()))
+            return
+        self._fit_thread = threading.Thread(
+            target=self._refit_work, args=(req, Path(str(data.get("out"))), work), daemon=True,
+            name="dvt-refit")
+        self._fit_thread.start()
+
+    def _refit_work(self, req: sv.RequestFit, snapshot: Path, work: Path) -> None:
+        t0 = time.monotonic()
+        try:
+            current = self._current.result() if self._current is not None else \
+                self._get_model_parameters()
+            outcome = sv.refit(snapshot, req, current, work, self.refit_settings)
+        except DvtIdentifyError as exc:
+            outcome = sv.FitOutcome(error=str(exc))
+        except Exception as exc:  # a worker must never take the node down
+            outcome = sv.FitOutcome(error=f"{type(exc).__name__}: {exc}")
+        seconds = time.monotonic() - t0
+        summary = {**outcome.summary, "refit_seconds": seconds}
+        result = sv.FitOutcome(outcome.new_errors, outcome.current_errors,
+                               outcome.new_parameters, outcome.current_parameters, summary,
+                               outcome.error)
+        sup = self.supervisor
+        assert sup is not None
+        self._done.put(lambda now: sup.fit_done(result, now))
+
+    def _get_model_parameters(self) -> dict[str, Any]:
+        """The model node's current parameter values (``None``: not set), read through its
+        parameter services; called in a worker thread."""
+        if not self.param_client.wait_for_services(timeout_sec=5.0):
+            raise DvtIdentifyError(f"model node {self.param_client.remote_node_name!r} has no "
+                                   "parameter services (not running?)")
+        names = list(MODEL_PARAMETERS)
+        future = self.param_client.get_parameters(names)
+        deadline = time.monotonic() + PARAMETER_TIMEOUT
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise DvtIdentifyError(f"model node did not answer get_parameters within "
+                                       f"{PARAMETER_TIMEOUT:g} s")
+            time.sleep(0.01)
+        values = future.result().values
+        return {n: sv.plain_value(Parameter.from_parameter_msg(
+            rosutil_parameter(n, v)).value) for n, v in zip(names, values, strict=True)}
+
+    def _start_push(self, values: Mapping[str, Any], rollback: bool) -> None:
+        sup = self.supervisor
+        assert sup is not None
+
+        def work() -> None:
+            try:  # the supervisor's push_timeout_s bounds the wait (a busy model node
+                # answers its parameter services after the samples queued before the call)
+                self._push(dict(values), timeout=sup.config.push_timeout_s)
+                ok, error = True, ""
+            except DvtIdentifyError as exc:
+                ok, error = False, str(exc)
+            except Exception as exc:  # never take the node down
+                ok, error = False, f"{type(exc).__name__}: {exc}"
+            done = sup.rollback_done if rollback else sup.push_done
+            self._done.put(lambda now: done(ok, now, error))
+
+        threading.Thread(target=work, daemon=True, name="dvt-push").start()
+
+    def _write_episode(self, report: sv.Report) -> None:
+        record = report.record
+        work = self._episode_dir(report.episode)
+        record["directory"] = str(work)
+        text = json.dumps(record, indent=2, default=_json_default, allow_nan=True)
+        try:
+            work.parent.mkdir(parents=True, exist_ok=True)
+            (work.parent / f"{work.name}.json").write_text(text + "\n")
+            (work.parent / f"{work.name}.md").write_text(sv.episode_markdown(record))
+        except OSError as exc:
+            self.get_logger().error(f"episode report {work}.json not written: {exc}")
+        self.pub_episode.publish(String(data=text))
+        self.get_logger().info(f"episode {report.episode}: {record.get('outcome')} -> "
+                               f"{work.parent / (work.name + '.json')}")
 
     def _diagnostics(self) -> None:
         level = {"failed": rosutil.ERROR}.get(self.state, rosutil.OK)
@@ -173,11 +488,62 @@ class IdentifyNode(Node):
                 values[key] = self.last[key]
         self.pub_diag.publish(rosutil.diagnostic(self, IDENTIFY_NODE, level, self.state,
                                                  values))
+        if self.supervisor is not None:
+            self.pub_diag.publish(rosutil.diagnostic(
+                self, SUPERVISOR_DIAG, rosutil.OK, f"supervisor: {self.supervisor.state.value}",
+                {**self.supervisor.status(), "bad_alarms": self.bad_alarms}))
+
+
+class _Reader:
+    """Runs ``fn`` in a thread at once; :meth:`result` waits for its value (or raises its
+    exception)."""
+
+    def __init__(self, fn: Callable[[], dict[str, Any]]) -> None:
+        self._value: dict[str, Any] = {}
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(fn,), daemon=True,
+                                        name="dvt-get-parameters")
+        self._thread.start()
+
+    def _run(self, fn: Callable[[], dict[str, Any]]) -> None:
+        try:
+            self._value = fn()
+        except BaseException as exc:  # handed to the caller of result()
+            self._error = exc
+
+    def result(self) -> dict[str, Any]:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+def rosutil_parameter(name: str, value: Any) -> Any:
+    """A ``rcl_interfaces/Parameter`` message from a ``ParameterValue`` (for
+    :meth:`Parameter.from_parameter_msg`)."""
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+
+    return ParameterMsg(name=name, value=value)
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, tuple | set):
+        return list(obj)
+    return str(obj)
 
 
 def main(args: list[str] | None = None) -> None:
     rosutil.init(args)
-    rosutil.spin(IdentifyNode())
+    try:
+        node = IdentifyNode()
+    except SupervisorError as exc:  # invalid supervisor.* parameters given at start-up
+        print(f"dvt_identify_node: {exc}", file=sys.stderr)
+        if rclpy.ok():
+            rclpy.shutdown()
+        sys.exit(2)
+    rosutil.spin(node)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dvt_identify import identifiability
 from dvt_identify.data import (
     DataWarning,
     Segment,
@@ -38,6 +39,13 @@ from dvt_identify.report import write_report
 
 def _quiet(_msg: str) -> None:
     return None
+
+
+def description_label(desc: Description) -> str:
+    """``dvt (bundled)`` for a bundled description, ``NAME (PATH)`` for a file (the name once)."""
+    if desc.source == desc.name or desc.source.startswith(f"{desc.name} ("):
+        return desc.source
+    return f"{desc.name} ({desc.source})"
 
 
 def load_segments(bags: Sequence[str | Path], desc: Description) -> list[Segment]:
@@ -92,8 +100,8 @@ def drop_unexcited_model_effects(desc: Description, est: Sequence[Segment]
     return replace(desc, model_effects=tuple(keep)), dropped
 
 
-def _read(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], desc: Description
-          ) -> tuple[list[Segment], list[Segment]]:
+def _read(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], desc: Description,
+          sink: list[str] | None = None) -> tuple[list[Segment], list[Segment]]:
     """Estimation and validation segments; the data warnings (unused parts of a recording)
     are always shown on stderr, also when quiet.
 
@@ -112,6 +120,8 @@ def _read(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], desc: 
     for w in caught:
         if issubclass(w.category, DataWarning):
             print(f"[dvt-identify] warning: {w.message}", file=sys.stderr, flush=True)
+            if sink is not None:
+                sink.append(str(w.message))
         else:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return est, val
@@ -150,22 +160,40 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
     t0 = time.monotonic()
     say = _quiet if quiet else (progress or stderr_progress)
     desc = load_description(description)
-    say(f"description {desc.name} ({desc.source}); reading {len(est_bags)} estimation and "
+    say(f"description {description_label(desc)}; reading {len(est_bags)} estimation and "
         f"{len(val_bags)} validation bag(s)")
-    est, val = _read(est_bags, val_bags, desc)
-    desc, dropped = drop_unexcited_model_effects(desc, est)
-    for label in dropped:
-        say(f"model effect {label} dropped: its input never varies in the estimation data")
+    data_warnings: list[str] = []
+    est, val = _read(est_bags, val_bags, desc, data_warnings)
+    # is this recording enough? (folds in drop_unexcited_model_effects: unused bands)
+    chk = identifiability.check(desc, est)
+    desc = identifiability.apply(desc, chk)
+    for line in chk.summary():
+        say(line)
     check_excitation(est, desc.checks,
                      {s.name: f"{s.topic} {s.field}[{s.joint}]" for s in desc.inputs},
                      used=used_inputs(desc))
     say(f"data read in {time.monotonic() - t0:.1f} s: "
         + ", ".join(f"{Path(s.name).name} {s.n} samples at {1 / s.dt:g} Hz" for s in est + val))
     cfg = loop_config(desc, augment, starts, fit_decimate)
-    result = identify(est, val, desc, cfg, say)
+    result = identify(est, val, desc, cfg, say, check=chk)
+    result.data_warnings = data_warnings
     paths = write_report(result, out_dir, plots_enabled=plots)
     say(f"report written: {paths['json']} and {paths['md']} ({time.monotonic() - t0:.1f} s)")
     return result
+
+
+def check_recording(est_bags: Sequence[str | Path], description: str | None = None
+                    ) -> tuple[identifiability.Identifiability, list[str]]:
+    """``dvt-identify --check``: is the estimation data enough? (no fit); returns the check
+    and the data warnings of loading.
+
+    Raises:
+        DvtIdentifyError: bad input (description, bags, data).
+    """
+    desc = load_description(description)
+    data_warnings: list[str] = []
+    est, _ = _read(est_bags, [], desc, data_warnings)
+    return identifiability.check(desc, est), data_warnings
 
 
 def model_push(result: IdentificationResult) -> Push:

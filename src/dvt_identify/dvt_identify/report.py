@@ -8,6 +8,14 @@ accept/reject decisions and an honest ``remaining`` list (what the final model l
 residual). When no candidate is accepted, ``effects`` is ``[{"name": "none", "accepted": true}]``
 and ``final`` equals ``baseline``.
 
+Trust: ``warnings`` (the data warnings of loading, parameters the recording does not determine,
+parameters at a bound, a suspect optimum, relative standard deviations above 100 %, drift),
+``identifiability`` (the check before fitting, :mod:`dvt_identify.identifiability`), ``drift``
+(:mod:`dvt_identify.drift`); standard deviations are HAC sandwich figures
+(:mod:`dvt_identify.uncertainty`). The residual remarks are calibrated against the sensor noise:
+a residual is called coloured only when its structured share (the part above the sensor floor
+estimated from its first difference) is at least :data:`STRUCTURED_SHARE`.
+
 Effects are ranked: accepted ones in the order they were accepted (each was the strongest of its
 round by the refit's likelihood ratio), then the others by the largest likelihood ratio of their
 refits, then by their last projected score.
@@ -26,10 +34,23 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from dvt_identify.identifiability import experiment_for
 from dvt_identify.loop import CandidateScore, Decision, IdentificationResult, Stage
+from dvt_identify.resid import input_noise_response, robust_white_floor
 from dvt_identify.simulation import simulate_linear, zoh
+from dvt_identify.uncertainty import NoiseFloor, noise_floor
 
 Array = NDArray[np.float64]
+STRUCTURED_SHARE = 0.75
+"""A validation residual is called coloured (structured) only when at least this share of its
+variance lies above the sensor noise floor, i.e. its structured part's RMS is at least sqrt(3)
+times the floor's. Measured on the committed recordings (validated on independent offline runs):
+clean ``ident-none-1`` 0 % (sun shaft) and 61 % (carrier 3); ``ident-windage`` before windage is
+modelled 80 % and 94 %."""
+PEAK_RATIO = 5.0
+"""A spectrum bin this many times the local median density is a prominent peak."""
+MAX_RELATIVE_STD = 1.0
+"""A fitted parameter whose relative standard deviation exceeds this gets a warning."""
 
 
 def _num(x: float) -> float | None:
@@ -76,17 +97,89 @@ def multistart_summary(stage: Stage) -> dict[str, Any]:
             "local_minima_found": len(starts) - len(near)}
 
 
-def stage_dict(stage: Stage, units: dict[str, str]) -> dict[str, Any]:
+def relative_std(stage: Stage) -> dict[str, float]:
+    """``std / |value|`` of every estimated parameter (``inf`` for a zero value)."""
+    vals = stage.parameters()
+    out = {}
+    for n, sd in stage.fit.parameter_std().items():
+        v = abs(float(vals.get(n, math.nan)))
+        out[n] = float(sd) / v if v > 0 else math.inf
+    return out
+
+
+def at_bounds(stage: Stage) -> list[str]:
+    """Names of parameters at a bound (``at_bounds_`` of the fit when it has it, else the
+    parameters within 1e-6 relative of a finite bound)."""
+    fit = stage.fit
+    given = getattr(fit, "at_bounds_", None)
+    if given is not None:
+        return [str(n) for n in given]
+    out = []
+    for spec, v, free in zip(fit.model.specs, fit.theta_, fit.model.free, strict=True):
+        if not free:
+            continue
+        for b in (spec.lower, spec.upper):
+            if math.isfinite(b) and abs(float(v) - b) <= 1e-6 * max(abs(b), 1e-9):
+                out.append(spec.name)
+                break
+    return out
+
+
+def suspect(stage: Stage) -> list[str]:
+    """Reasons the fit's optimum is suspect (``suspect_`` of the fit; empty without it)."""
+    return [str(r) for r in (getattr(stage.fit, "suspect_", None) or [])]
+
+
+def residual_floors(stage: Stage, val: Sequence[Any]) -> list[NoiseFloor]:
+    """Noise floor and structured share of each output's validation residual.
+
+    The floor is what the sensors alone leave in an output-error residual: the output's white
+    noise (from the residual's first difference, :func:`dvt_identify.uncertainty.noise_floor`)
+    plus the response of the model's linear part to the white noise of the measured inputs
+    (robust first-difference floor of each input, :func:`dvt_identify.resid.input_noise_response`):
+    an OE simulation is driven by the measured, noisy inputs. ``floor_rms`` is their sum in
+    quadrature (at most the RMS) and ``structured_share`` the rest of the variance."""
+    if not val:
+        return []
+    ny = len(stage.val.output_names)
+    floors = [noise_floor([s.y[:, j] - p[:, j] for s, p in zip(val, stage.val_pred,
+                                                                 strict=True)])
+              for j in range(ny)]
+    try:
+        A, B = stage.linear()
+        u_std = [robust_white_floor([s.u[:, i] for s in val]) for i in range(B.shape[1])]
+        var_in = input_noise_response(A, B, float(val[0].dt), u_std)
+    except (np.linalg.LinAlgError, ValueError):
+        var_in = np.zeros(ny)
+    out = []
+    for j, nf in enumerate(floors):
+        vi = float(var_in[j]) if j < var_in.size and math.isfinite(float(var_in[j])) else 0.0
+        var = nf.rms ** 2
+        if not math.isfinite(var) or var <= 0:
+            out.append(nf)
+            continue
+        fl = min(nf.floor_rms ** 2 + vi, var)
+        out.append(NoiseFloor(rms=nf.rms, floor_rms=math.sqrt(fl),
+                              structured_share=float(np.clip(1.0 - fl / var, 0.0, 1.0))))
+    return out
+
+
+def stage_dict(stage: Stage, units: dict[str, str], val: Sequence[Any] = ()) -> dict[str, Any]:
     """Contract view of a stage (validation figures) plus details."""
-    val = stage.val.as_dict()
+    val_fig = stage.val.as_dict()
+    floors = residual_floors(stage, val)
     return {
         "label": stage.label,
-        "fit_percent": val["fit_percent"],
-        "rmse": val["rmse"],
+        "fit_percent": val_fig["fit_percent"],
+        "rmse": val_fig["rmse"],
         "parameters": stage.parameters(),
         "parameter_std": stage.fit.parameter_std(),
+        "parameter_relative_std": relative_std(stage),
+        "parameter_std_method": "HAC sandwich (Bartlett lag window, Andrews bandwidth)",
+        "at_bounds": at_bounds(stage),
+        "suspect": suspect(stage),
         "effects": [e.label() for e in stage.effects],
-        "validation": val,
+        "validation": val_fig,
         "estimation": stage.est.as_dict(),
         "validation_initial_states": [x.tolist() for x in stage.val_x0],
         "estimation_initial_states": [x.tolist() for x in stage.fit.x0_],
@@ -95,6 +188,9 @@ def stage_dict(stage: Stage, units: dict[str, str]) -> dict[str, Any]:
         "residual_spectrum_peak_hz": {n: sp.peak_hz for n, sp in
                                       zip(stage.val.output_names, stage.spectrum_val,
                                           strict=True)},
+        "residual_noise_floor": {n: {"rms": f.rms, "sensor_floor_rms": f.floor_rms,
+                                     "structured_share": f.structured_share}
+                                 for n, f in zip(stage.val.output_names, floors, strict=False)},
         "multistart": multistart_summary(stage),
         "fit_seconds": stage.fit.seconds_,
         "units": units,
@@ -155,13 +251,27 @@ def remaining_summary(result: IdentificationResult) -> list[str]:
     """Plain statements of what the final model leaves in the validation residual."""
     out = []
     fin = result.final
-    for r, sp in zip(fin.resid_val, fin.spectrum_val, strict=True):
+    floors = residual_floors(fin, result.val_segments)
+    for k, (r, sp) in enumerate(zip(fin.resid_val, fin.spectrum_val, strict=True)):
+        nf = floors[k] if k < len(floors) else None
+        structured = nf is None or not (nf.structured_share < STRUCTURED_SHARE)
         if r.white:
             out.append(f"{r.output}: the validation residual is white within the 99 % bounds "
                        f"(Ljung-Box p = {r.ljung_box_p:.3g}).")
+        elif not structured and nf is not None:
+            struct = math.sqrt(max(nf.rms ** 2 - nf.floor_rms ** 2, 0.0))
+            out.append(f"{r.output}: the validation residual is close to the sensor noise "
+                       f"floor: {100 * nf.structured_share:.2g} % of its variance lies above "
+                       f"what the output and input noise give (RMS {nf.rms:.3g}, noise floor "
+                       f"{nf.floor_rms:.3g}, structured part {struct:.3g}), below the "
+                       f"{100 * STRUCTURED_SHARE:g} % threshold of a structured residual; "
+                       f"its correlation (lag-1 {r.acf[1]:.3f}) shows no model error worth "
+                       "modelling.")
         else:
-            out.append(f"{r.output}: the validation residual is coloured (Ljung-Box Q = "
-                       f"{r.ljung_box:.4g}, p = {r.ljung_box_p:.3g}; lag-1 autocorrelation "
+            share = (f"{100 * nf.structured_share:.2g} % of its variance above the sensor "
+                     f"noise floor, " if nf is not None else "")
+            out.append(f"{r.output}: the validation residual is coloured ({share}Ljung-Box "
+                       f"Q = {r.ljung_box:.4g}, p = {r.ljung_box_p:.3g}; lag-1 autocorrelation "
                        f"{r.acf[1]:.3f}): the OE model leaves correlated error.")
         for name, ok in r.independent.items():
             if ok:
@@ -171,10 +281,14 @@ def remaining_summary(result: IdentificationResult) -> list[str]:
                 out.append(f"{r.output}: residual still correlated with input {name} (max "
                            f"|CCF|/bound = {r.max_ccf_ratio[name]:.2f}): input-driven dynamics "
                            "are not fully modelled.")
-        if sp.peak_ratio > 5.0:
+        if sp.peak_ratio > PEAK_RATIO and structured:
             out.append(f"{r.output}: the validation residual spectrum has a peak at "
                        f"{sp.peak_hz:.3g} Hz ({sp.peak_ratio:.3g} x the median density within "
                        "half an octave), e.g. an unmodelled resonance or periodic disturbance.")
+        elif sp.peak_ratio > PEAK_RATIO:
+            out.append(f"{r.output}: no peak above the sensor noise in the validation residual "
+                       f"spectrum (largest bin {sp.peak_ratio:.2g} x the local median, at "
+                       f"{sp.peak_hz:.3g} Hz, in a residual at the noise floor).")
         else:
             out.append(f"{r.output}: no prominent peak in the validation residual spectrum "
                        f"(largest {sp.peak_ratio:.2g} x the local median, at {sp.peak_hz:.3g} "
@@ -198,15 +312,50 @@ def remaining_summary(result: IdentificationResult) -> list[str]:
     return out
 
 
+def build_warnings(result: IdentificationResult) -> list[str]:
+    """What a reader must know before trusting the final model: the data warnings of loading,
+    the parameters the recording does not determine (check before fitting, and a relative
+    standard deviation above 100 % after it), parameters at a bound, a suspect optimum, and
+    drift."""
+    out = [f"data: {w}" for w in result.data_warnings]
+    chk = result.identifiability
+    flagged: set[str] = set()
+    if chk is not None:
+        for pc in chk.undetermined:
+            flagged.add(pc.name)
+            out.append(pc.statement())
+    fin = result.final
+    vals = fin.parameters()
+    for name, rel in relative_std(fin).items():
+        if not rel <= MAX_RELATIVE_STD:
+            cmd, what = experiment_for(name)
+            std = fin.fit.parameter_std().get(name, math.nan)
+            rel_text = f"{100 * rel:.3g} %" if math.isfinite(rel) else "infinite"
+            out.append(f"not determined by this recording: {name} = {vals.get(name, math.nan):.6g}"
+                       f" has a relative standard deviation of {rel_text} (std {std:.3g}) > "
+                       f"{100 * MAX_RELATIVE_STD:g} %; record `{cmd}` ({what})"
+                       + (" (already flagged before fitting)" if name in flagged else ""))
+    for name in at_bounds(fin):
+        spec = next((sp for sp in fin.fit.model.specs if sp.name == name), None)
+        where = (f" (bounds [{spec.lower:g}, {spec.upper:g}])" if spec is not None else "")
+        out.append(f"parameter at a bound: {name} = {vals.get(name, math.nan):.6g}{where}: the "
+                   "optimum is constrained, its standard deviation does not apply")
+    for reason in suspect(fin):
+        out.append(f"suspect optimum: {reason}")
+    if result.drift is not None:
+        out += [f"drift: {p.statement()}" for p in result.drift.drifting]
+    return out
+
+
 def build_report(result: IdentificationResult) -> dict[str, Any]:
     """The ``report.json`` content."""
     desc = result.description
     units = {n: desc.structure.speed_unit or "" for n in desc.output_names}
-    baseline = stage_dict(result.baseline, units)
+    baseline = stage_dict(result.baseline, units, result.val_segments)
     accepted = result.accepted
     if accepted:
         effects = ranked_effects(result)
-        final = stage_dict(result.final, units)
+        final = stage_dict(result.final, units, result.val_segments)
     else:
         effects = [{"name": "none", "accepted": True}]
         final = baseline
@@ -226,9 +375,16 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
                    for r in result.rounds],
         "decisions": [d.as_dict() for d in result.decisions],
         "remaining": remaining_summary(result),
+        "warnings": build_warnings(result),
+        "identifiability": (result.identifiability.as_dict()
+                            if result.identifiability is not None else None),
+        "drift": result.drift.as_dict() if result.drift is not None else None,
         "settings": {"starts": result.config.starts, "refit_starts": result.config.refit_starts,
                      "alpha": result.config.alpha,
+                     "validation_test": "Diebold-Mariano one-sided at alpha (HAC variance)",
                      "min_validation_gain": result.config.min_validation_gain,
+                     "drift_windows": result.config.drift_windows,
+                     "drift_min_change": result.config.drift_min_change,
                      "augment": result.config.augment, "fit_dt_s": result.fit_dt,
                      "fit_decimate": result.config.fit_decimate},
         "notes": result.notes,
@@ -491,6 +647,7 @@ def plot_spectrum(result: IdentificationResult, out: Path,
     save = save or _PngWriter()
     paths = []
     both = result.final is not result.baseline
+    floors = residual_floors(result.final, result.val_segments)
     for j, name in enumerate(result.description.output_names):
         fig, ax = plt.subplots(figsize=(9, 4))
         sb, sf = result.baseline.spectrum_val[j], result.final.spectrum_val[j]
@@ -498,7 +655,12 @@ def plot_spectrum(result: IdentificationResult, out: Path,
                   label="baseline" if both else "baseline (= final)")
         if both:
             ax.loglog(sf.freq[1:], sf.psd[1:], color="tab:blue", lw=0.8, label="final")
-        ax.axvline(sf.peak_hz, color="k", ls=":", lw=0.8, label=f"peak {sf.peak_hz:.3g} Hz")
+        prominent = sf.peak_ratio > PEAK_RATIO and (
+            j >= len(floors) or not floors[j].structured_share < STRUCTURED_SHARE)
+        ax.axvline(sf.peak_hz, color="k", ls=":", lw=0.8,
+                   label=(f"peak {sf.peak_hz:.3g} Hz ({sf.peak_ratio:.2g} x local median)"
+                          if prominent else f"largest bin {sf.peak_hz:.3g} Hz (no prominent "
+                          "peak)"))
         _plain_log_labels(ax, x=True, y=True)
         ax.set_xlabel("frequency [Hz]")
         ax.set_ylabel("PSD")
@@ -596,6 +758,18 @@ def _f(x: Any, nd: int = 4) -> str:
     return f"{v:.{nd}g}"
 
 
+def _lr_cell(x: Any) -> str:
+    """A refit's likelihood ratio for the table: <= 0 (the loss did not decrease) as
+    "0 (no improvement)"; the raw value stays in ``report.json``."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if math.isnan(v):
+        return "-"
+    return "0 (no improvement)" if v <= 0 else _f(v)
+
+
 def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
     """Human report from the JSON content."""
     lines = [f"# Identification report: {rep['description']['name']}", ""]
@@ -619,33 +793,61 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
         e = st["estimation"]
         lines.append(f"| {lab} | {_f(e['loss'])} | {_f(e['fpe'])} | {_f(e['aic'], 8)} | "
                      f"{_f(e['bic'], 8)} | {e['n_params']} |")
-    lines += ["", "## Parameters (final model)", "", "| parameter | value | std dev |",
-              "|---|---|---|"]
+    lines += ["", "## Parameters (final model)", "",
+              "| parameter | value | std dev | relative std % |", "|---|---|---|---|"]
+    rel = f.get("parameter_relative_std") or {}
     for k, v in f["parameters"].items():
-        lines.append(f"| {k} | {_f(v, 6)} | {_f(f['parameter_std'].get(k, float('nan')), 3)} |")
+        r = rel.get(k)
+        rs = "-" if k not in rel else ("not determined" if r is None else _f(100 * r, 3))
+        lines.append(f"| {k} | {_f(v, 6)} | {_f(f['parameter_std'].get(k, float('nan')), 3)} | "
+                     f"{rs} |")
     ms = f.get("multistart") or {}
     if ms:
         lines += ["", f"Multi-start: {ms['n_starts']} start(s), {ms['n_at_best']} reached the "
                   f"best cost; {ms['local_minima_found']} ended in another (local) minimum."]
-    lines += ["", "Standard deviations come from the Jacobian assuming white residuals; with "
-              "the coloured residuals below they are optimistic.", ""]
+    lines += ["", "Standard deviations: HAC sandwich covariance with a Bartlett lag window "
+              "(valid for coloured residuals and model error; see docs/identification.md).", ""]
+    if rep.get("warnings"):
+        lines += ["## Warnings", ""] + [f"- {w}" for w in rep["warnings"]] + [""]
+    chk = rep.get("identifiability")
+    if chk:
+        lines += ["## Is this recording enough? (check before fitting)", ""]
+        und = [q for q in chk["parameters"] if not q["determined"]]
+        if not und:
+            lines.append("The recording determines every parameter of the baseline model.")
+        else:
+            lines += ["| parameter | prior | predicted relative std | why | fixed at prior | "
+                      "experiment |", "|---|---|---|---|---|---|"]
+            for q in und:
+                prs = q["predicted_relative_std"]
+                prs_text = f"{_f(100 * prs, 3)} %" if prs is not None else "infinite"
+                lines.append(f"| {q['name']} | {_f(q['prior'], 6)} | {prs_text} | "
+                             f"{q['reason']} | {'yes' if q['fixed_at_prior'] else 'no'} | "
+                             f"`{q['experiment']}` |")
+        lines.append("")
+    dr = rep.get("drift")
+    if dr:
+        lines += ["## Drift over the recording", ""] + [f"- {x}" for x in dr["summary"]] + [""]
     lines += ["## Effects (ranked, strongest first)", ""]
     effs = rep["effects"] if rep["effects"][0]["name"] != "none" else rep.get("candidates", [])
     if rep["effects"][0]["name"] == "none":
         lines += ["No candidate was accepted: `effects = [none]`, final = baseline.", ""]
     lines += ["| effect | where | accepted | projected R2 % | LM p | refit LR | dBIC | "
-              "validation fit | parameters |", "|---|---|---|---|---|---|---|---|---|"]
+              "validation fit | validation test p | parameters |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for e in effs or []:
         ev = e["evidence"]
         ref = ev.get("refits") or []
-        lr = _f(ref[-1]["lr"]) if ref else "-"
+        lr = _lr_cell(ref[-1]["lr"]) if ref else "-"
         db = _f(ref[-1]["delta_bic"]) if ref else "-"
         vf = (f"{_f(ref[-1]['validation_fit_before'])} -> {_f(ref[-1]['validation_fit_after'])}"
               if ref else "-")
+        vt = (ref[-1].get("validation_test") or {}) if ref else {}
+        vp = _f(vt.get("p_value"), 2) if vt else "-"
         pars = ", ".join(f"{k}={_f(v)}" for k, v in e["parameters"].items())
         lines.append(f"| {e['name']} | {e['where']} | {'yes' if e['accepted'] else 'no'} | "
                      f"{_f(ev['r2_projected'] * 100)} | {_f(ev['p_value'], 2)} | {lr} | {db} | "
-                     f"{vf} | {pars} |")
+                     f"{vf} | {vp} | {pars} |")
     lines += ["", "Decisions:", ""]
     for d in rep["decisions"]:
         lines.append(f"- round {d['round']}: {d['candidate']}: "
@@ -663,8 +865,10 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
               "parameters fixed. Candidates are scored by the residual sum of squares their "
               "output sensitivities explain after projecting out the model's own parameter "
               "sensitivities; the significant ones are refitted, and one is accepted only if the "
-              "likelihood-ratio test and BIC on the estimation data and the validation fit all "
-              "improve. Residual bounds: 99 %; cross-correlation bounds by Bartlett's formula "
+              "likelihood-ratio test and BIC pass on the estimation data and the validation "
+              "error is significantly smaller (one-sided Diebold-Mariano test with a HAC "
+              "variance at the loop's alpha). Residual bounds: 99 %; cross-correlation "
+              "bounds by Bartlett's formula "
               "(valid for coloured residual and input).", ""]
     lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots]
     return "\n".join(lines) + "\n"

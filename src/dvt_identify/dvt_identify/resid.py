@@ -211,3 +211,35 @@ def residual_spectrum(residuals: Sequence[Array], dt: float, nperseg: int = 2048
         if bg > 0 and psd[i] / bg > best:
             best, best_i = float(psd[i] / bg), i
     return Spectrum(freq, psd, float(freq[best_i]), best)
+
+
+def robust_white_floor(xs: Sequence[Array]) -> float:
+    """White-noise std of a signal from its first difference, robust to sparse jumps (a PRBS
+    switching, a set-point step): ``1.4826 MAD(diff x) / sqrt(2)`` pooled over segments."""
+    d = np.concatenate([np.diff(np.asarray(x, float).reshape(-1)) for x in xs if np.size(x) > 1]
+                       or [np.zeros(0)])
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return 0.0
+    mad = float(np.median(np.abs(d - np.median(d))))
+    return 1.4826 * mad / float(np.sqrt(2.0))
+
+
+def input_noise_response(A: Array, B: Array, dt: float, input_std: Sequence[float],
+                         n: int = 20000, seed: int = 0) -> Array:
+    """Variance of each output (state) of ``x' = A x + B u`` driven by white input noise of std
+    ``input_std`` per input held over each sample (what an output-error simulation fed with
+    measured, noisy inputs carries in its error), shape (nx,)."""
+    from dvt_identify.simulation import simulate_linear, zoh
+
+    nx, nu = B.shape
+    if nx == 0 or nu == 0 or not np.any(np.asarray(input_std) > 0):
+        return np.zeros(nx)
+    if np.max(np.linalg.eigvals(A).real, initial=-np.inf) >= 0:
+        return np.full(nx, np.nan)  # an integrator or unstable part: no stationary variance
+    Ad, Gd = zoh(A, dt)
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, nu)) * np.asarray(input_std, float)[None, :]
+    x = simulate_linear(Ad, (u @ B.T) @ Gd.T, np.zeros(nx))
+    burn = min(n // 5, 2000)
+    return np.asarray(np.var(x[burn:], axis=0), dtype=float)

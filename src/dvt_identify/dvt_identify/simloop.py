@@ -300,6 +300,22 @@ def spline_load(w: Array, dt: float, half: float, a: float, b: float, sub: int) 
                                           float(half), float(a), float(b), int(sub)))
 
 
+@njit(cache=True, nogil=True)
+def first_order_lag(col: Array, e: float) -> Array:  # pragma: no cover - compiled
+    """The ZOH first-order lag of a held input: ``y[0] = col[0]``,
+    ``y[k+1] = e y[k] + (1 - e) col[k]`` (``e = exp(-dt / tau)``), shape of ``col``."""
+    n = col.shape[0]
+    out = np.empty(n)
+    if n == 0:
+        return out
+    y = col[0]
+    out[0] = y
+    for k in range(n - 1):
+        y = e * y + (1.0 - e) * col[k]
+        out[k + 1] = y
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) both kernels now, on a tiny problem; what a
     process pays once before its first simulation with member forces."""
@@ -312,3 +328,4 @@ def warm_up() -> None:
     loop_scalar(0.0, 1.0, np.zeros(2), np.zeros(2), 0.0, e1, ek, np.zeros((0, 2)), e1,
                 False, np.zeros(2), 0.0, 1.0, 1.0, 0.0)
     spline_load(np.zeros(2), 1e-3, 0.0, 1.0, 1.0, 2)
+    first_order_lag(np.zeros(2), 0.5)

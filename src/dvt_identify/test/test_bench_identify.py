@@ -123,3 +123,35 @@ def test_prbs_is_a_maximum_length_sequence() -> None:
     assert set(np.unique(seq)) == {-1.0, 1.0}
     assert int(np.sum(seq > 0)) == 2 ** 7  # one more +1 than -1 per period
     np.testing.assert_array_equal(bi.prbs(50, 8, 0, 100), seq[:50])
+
+
+def test_monte_carlo_coloured_smoke(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = bench_main(["identify", "--monte-carlo", "3", "--mc-seconds", "2", "--mc-rate", "200",
+                     "--workers", "1", "--coloured", "--json"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["runs_ok"] == 3
+    rec = res["record"]
+    assert "AR(1)" in rec["noise"] and "Coulomb" in rec["unmodelled"]
+    for p in res["parameters"].values():
+        assert 0.0 <= p["coverage_95"] <= 1.0 and 0.0 <= p["coverage_95_nominal"] <= 1.0
+        assert p["true"] != p["nominal"]  # pseudo-true values: the misspecified limit
+
+
+def test_coloured_noise_has_the_asked_std_and_correlation() -> None:
+    e = bi.coloured_noise(np.random.default_rng(0), (100000, 2), np.array([1.0, 2.0]), 0.9)
+    assert np.std(e, axis=0) == pytest.approx([1.0, 2.0], rel=0.05)
+    assert np.corrcoef(e[1:, 0], e[:-1, 0])[0, 1] == pytest.approx(0.9, abs=0.01)
+
+
+def test_pretty_output_of_the_comparison() -> None:
+    row = {"estimation": "bags/ident-coulomb", "validation": "bags/ident-coulomb-val",
+           "validation_fit_percent": {"a": 98.9, "b": 98.7},
+           "validation_fit_percent_free_run": {"a": 98.9, "b": 98.7},
+           "accepted": ["coulomb_friction@carrier3"], "M_error_percent": 0.5,
+           "D_error_percent": 1.4, "seconds": 9.0, "cpu_seconds": 8.5, "baseline_fit_seconds": 1.0,
+           "baseline_suspect": [], "reference": bi.REFERENCE["ident-coulomb"],
+           "meets_targets": {"twice_as_fast": True}}
+    text = bi.pretty({"mode": "compare", "runs": [row], "reference_method": "ms",
+                      "load_average": {"before": [], "after": []}})
+    assert "98.87 / 98.69" in text and "M error 0.50 %" in text and "twice_as_fast yes" in text

@@ -106,3 +106,76 @@ def test_cli_mapping_file_and_errors(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main([str(tmp_path / "missing.npz"), "--time", "t", "--signal", "/x", "a", "effort",
                  "q", "--out", str(tmp_path / "b2")]) == 2
     assert "file not found" in capsys.readouterr().err
+
+
+def test_csv_with_trailing_commas(tmp_path: Path) -> None:
+    """Lines ending in a comma (an empty last cell) and an empty trailing header are ignored."""
+    p = tmp_path / "log.csv"
+    p.write_text("t,q,\n0.0,1.0,\n0.001,2.0,\n0.002,3.0,\n\n")
+    cols = load_columns(p)
+    assert sorted(cols) == ["q", "t"]
+    assert cols["q"].tolist() == [1.0, 2.0, 3.0]
+
+
+def test_csv_errors_name_line_and_column(tmp_path: Path) -> None:
+    p = tmp_path / "bad.csv"
+    p.write_text("t,q\n0.0,1.0\n0.001,x\n")
+    with pytest.raises(ImportDataError, match=r"line 3, column 'q' \(column 2\): not a number"):
+        load_columns(p)
+    p.write_text("t,,q\n0,1,2\n")
+    with pytest.raises(ImportDataError, match="column 2 has an empty name"):
+        load_columns(p)
+    p.write_text("t,q\n0,1,5\n")
+    with pytest.raises(ImportDataError, match="line 2: 3 cells, header has 2"):
+        load_columns(p)
+
+
+def test_dt_without_time_column(tmp_path: Path) -> None:
+    p = tmp_path / "notime.npz"
+    np.savez(p, q=0.5 * T**2)
+    mp = ImportMapping(None, (SignalMap("/x/js", "slide", "velocity", "d(q)"),), dt=1e-3)
+    bag = import_columns(p, tmp_path / "bag", mp)
+    js = read_jointstate_topics(bag, ["/x/js"])["/x/js"]
+    assert js.stamps_ns[0] == 0 and js.stamps_ns[-1] == 999_000_000
+    assert js.velocity is not None
+    assert js.velocity[1:-1, 0] == pytest.approx(T[1:-1], abs=1e-9)
+
+
+def test_second_derivative_and_range(tmp_path: Path) -> None:
+    mp = ImportMapping("t", (SignalMap("/x/js", "slide", "effort", "d2(q)"),
+                             SignalMap("/x/js", "slide", "position", "q")),
+                       sample_range=(100, 900))
+    topics = build_topics({"t": T, "q": 0.5 * T**2}, mp, "mem")
+    js = topics["/x/js"]
+    assert js.stamps_ns.size == 800 and js.stamps_ns[0] == 0  # the range starts the clock
+    assert js.effort is not None and js.position is not None
+    # the second derivative of t^2/2 is 1 everywhere inside the range (no end effects there)
+    assert js.effort[:, 0] == pytest.approx(np.ones(800), abs=1e-6)
+    assert js.position[0, 0] == pytest.approx(0.5 * T[100] ** 2)
+
+
+def test_cli_dt_range_and_order(tmp_path: Path) -> None:
+    p = tmp_path / "log.csv"
+    p.write_text("q,\n" + "".join(f"{0.5 * (k * 1e-3) ** 2},\n" for k in range(500)))
+    rc = main([str(p), "--out", str(tmp_path / "bag"), "--dt", "0.001", "--range", "10:410",
+               "--signal", "/x/js", "slide", "velocity", "d(q)"])
+    assert rc == 0
+    js = read_jointstate_topics(tmp_path / "bag", ["/x/js"])["/x/js"]
+    assert js.stamps_ns.size == 400
+    rc = main([str(p), "--out", str(tmp_path / "bag2"), "--dt", "0.001",
+               "--signal", "/x/js", "slide", "velocity", "d7(q)"])
+    assert rc == 2
+
+
+def test_mapping_time_and_dt_exclusive(tmp_path: Path) -> None:
+    from dvt_identify.importer import parse_mapping
+
+    sig = [{"topic": "/x", "joint": "j", "field": "position", "expr": "q"}]
+    with pytest.raises(ImportDataError, match="exactly one of 'time'"):
+        parse_mapping({"time": "t", "dt": 0.001, "signals": sig}, "m.yaml")
+    with pytest.raises(ImportDataError, match="exactly one of 'time'"):
+        parse_mapping({"signals": sig}, "m.yaml")
+    with pytest.raises(ImportDataError, match="dt: expected a finite period > 0"):
+        parse_mapping({"dt": -1, "signals": sig}, "m.yaml")
+    with pytest.raises(ImportDataError, match="range: expected 0 <= start < stop"):
+        parse_mapping({"time": "t", "range": "5:2", "signals": sig}, "m.yaml")

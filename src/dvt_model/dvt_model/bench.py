@@ -5,13 +5,17 @@ Starts ``dvt_model_node`` as its own process, publishes ``/dvt/joint_states`` an
 ``/dvt/model/residual`` and prints JSON::
 
     {"rate_hz", "sent", "received", "published", "dropped",
-     "latency_ms": {"p50", "p99"}, "cpu_percent"}
+     "latency_ms": {"p50", "p99", "p999", "max"}, "cpu_percent", "detector"}
 
 ``received``: samples the node processed (from its diagnostics); ``published``: residual
 messages that reached the bench; ``dropped = sent - published``; latency: publish of the
 measured sample to receipt of its residual (same machine clock); ``cpu_percent``: the node
-process's CPU time over the run (100 = one core). A benchmark, not a test: it prints what it
-measured.
+process's CPU time over the run (100 = one core); ``detector``: whether the node's change
+detector ran (default on, as in production; ``--no-detector`` starts the node with
+``detector.enabled:=false`` for a comparison) and its last ``/diagnostics`` status (``state``,
+``samples`` it tested, ``alarms``). The detector learns for ``detector.learn_s`` (20 s) before
+it tests; ``--seconds`` beyond that measures the testing path too. A benchmark, not a test: it
+prints what it measured.
 """
 
 from __future__ import annotations
@@ -35,7 +39,8 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / ticks
 
 
-def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]:
+def run(rate: float, seconds: float, params: str = "physical", detector: bool = True
+        ) -> dict[str, Any]:
     """Run the benchmark; returns the figures (see module docstring)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -60,14 +65,16 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
     exe_path = Path(sys.executable).parent / "dvt_model_node"
-    proc = subprocess.Popen([str(exe_path), "--ros-args", "-p", f"params:={params}"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen([str(exe_path), "--ros-args", "-p", f"params:={params}",
+                             "-p", f"detector.enabled:={'true' if detector else 'false'}"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=int(env["ROS_DOMAIN_ID"]))
     node = rclpy.create_node("dvt_bench_model", context=ctx)
     sent_at: dict[int, float] = {}
     latencies: list[float] = []
     node_samples = {"n": 0}
+    det_status: dict[str, str] = {}
     lock = threading.Lock()
 
     def on_residual(msg: JointState) -> None:
@@ -84,6 +91,9 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
                 for kv in st.values:
                     if kv.key == "samples":
                         node_samples["n"] = int(kv.value)
+            elif st.name == f"{MODEL_NODE}: change detector":
+                det_status.clear()
+                det_status.update({kv.key: kv.value for kv in st.values})
 
     node.create_subscription(JointState, MODEL_RESIDUAL, on_residual, rosutil.SENSOR_QOS)
     node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diag,
@@ -139,8 +149,14 @@ def run(rate: float, seconds: float, params: str = "physical") -> dict[str, Any]
             "published": len(latencies),
             "dropped": n - len(latencies),
             "latency_ms": {"p50": float(np.percentile(lat, 50)) if lat.size else None,
-                           "p99": float(np.percentile(lat, 99)) if lat.size else None},
+                           "p99": float(np.percentile(lat, 99)) if lat.size else None,
+                           "p999": float(np.percentile(lat, 99.9)) if lat.size else None,
+                           "max": float(lat.max()) if lat.size else None},
             "cpu_percent": 100.0 * (cpu1 - cpu0) / (wall1 - wall0),
+            "detector": {"enabled": detector,
+                         **{k: det_status[k] for k in ("state", "samples", "tested", "alarms")
+                            if k in det_status}},
+            "load_average_1min": os.getloadavg()[0],
         }
     finally:
         stop.set()
@@ -160,8 +176,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=1000.0)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--params", default="physical")
+    parser.add_argument("--no-detector", action="store_true",
+                        help="start the node with detector.enabled:=false (comparison)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    out = run(args.rate, args.seconds, args.params)
+    out = run(args.rate, args.seconds, args.params, detector=not args.no_detector)
     print(json.dumps(out, indent=None if args.json else 2))
     return 0

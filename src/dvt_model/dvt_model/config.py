@@ -19,10 +19,13 @@ Admissibility beyond each parameter's own type, length and range:
 - ``params``: a bundled parameter set or a readable, valid YAML file.
 - ``load``: ``none``, a preset of :mod:`dvt_model.load` or a readable, valid load YAML; not
   with the linear model (the load acts through the physics).
+- ``detector.*``: the change detector's settings (:func:`detector_config`), checked together
+  by :meth:`dvt_model.detect.DetectorConfig.validated` (e.g. a reference window of at least 100
+  samples).
 
-Every error is a :class:`~dvt_model.errors.ContractError` or
-:class:`~dvt_model.errors.ModelError` whose message starts with the parameter's name and
-gives the value and what is admissible.
+Every error is a :class:`~dvt_model.errors.ContractError`,
+:class:`~dvt_model.errors.ModelError` or :class:`~dvt_model.errors.ParameterError` whose message
+starts with the parameter's name and gives the value and what is admissible.
 """
 
 from __future__ import annotations
@@ -36,13 +39,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dvt_model.contract import (
+    DETECTOR_PREFIX,
     M_MAX_CONDITION,
     M_MIN_EIGENVALUE,
     MODEL_PARAMETERS,
     short_repr,
 )
+from dvt_model.detect import DetectorConfig
 from dvt_model.dynamics import RigidModel, rigid_model
-from dvt_model.errors import ContractError, DvtModelError, ModelError
+from dvt_model.errors import ContractError, DvtModelError, ModelError, ParameterError
 from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel
 from dvt_model.load import JointLoad, load_joint_load
@@ -76,6 +81,7 @@ class ModelConfig:
         mode, reanchor_period [s], gap_reset [s]: the predictor's settings.
         changes: names of the overrides applied to the parameter set.
         load: the joint load on carrier 3 (``load``), or ``None``.
+        detector: the change detector's settings, or ``None`` (``detector.enabled`` false).
     """
 
     params: TransmissionParams
@@ -88,6 +94,7 @@ class ModelConfig:
     gap_reset: float
     changes: tuple[str, ...]
     load: JointLoad | None = None
+    detector: DetectorSetup | None = None
 
 
 def _plain(value: Any) -> Any:
@@ -189,6 +196,49 @@ def _joint_load(name: str) -> JointLoad | None:
         raise ContractError(f"load: {short_repr(name)}: cannot load: {exc}") from exc
 
 
+@dataclass(frozen=True)
+class DetectorSetup:
+    """How the model node runs its change detector.
+
+    Attributes:
+        block: residual samples averaged into one detector sample (1: every sample).
+        config: the detector's settings at the block rate (``sample_rate_hz`` is
+            ``detector.sample_rate_hz / block``).
+    """
+
+    block: int
+    config: DetectorConfig
+
+
+def _detector(v: Mapping[str, Any]) -> DetectorSetup | None:
+    """The detector's settings from normalised values (``None`` when disabled)."""
+    p = DETECTOR_PREFIX + "."
+    rate = float(v[p + "sample_rate_hz"])
+    block = max(1, round(float(v[p + "block_s"]) * rate))
+    cfg = DetectorConfig(
+        sample_rate_hz=rate / block, learn_s=float(v[p + "learn_s"]),
+        shift_sigma=float(v[p + "shift_sigma"]),
+        false_alarm_period_s=float(v[p + "false_alarm_period_s"]),
+        max_gap_s=float(v[p + "max_gap_s"]), max_phi=float(v[p + "max_phi"])).validated()
+    if cfg.max_gap_s <= 1.0 / cfg.sample_rate_hz:
+        raise ParameterError(f"{p}max_gap_s: expected more than one detector sample period "
+                             f"({block / rate:g} s with {p}block_s = {v[p + 'block_s']:g} s), "
+                             f"got {cfg.max_gap_s:g}")
+    return DetectorSetup(block=block, config=cfg) if v[p + "enabled"] else None
+
+
+def detector_config(values: Mapping[str, Any]) -> DetectorSetup | None:
+    """The change detector's settings from model-node parameter values (merged onto the
+    defaults), or ``None`` when ``detector.enabled`` is false.
+
+    Raises:
+        ContractError: a ``detector.*`` value of the wrong type or out of its range.
+        ParameterError: the values together are not admissible (e.g. fewer than 100 samples in
+            the reference window); the message names ``detector.<name>`` and the value.
+    """
+    return _detector(normalise(values))
+
+
 def resolve(values: Mapping[str, Any]) -> ModelConfig:
     """Validate model-node parameter values (merged onto the defaults) into a configuration.
 
@@ -196,6 +246,7 @@ def resolve(values: Mapping[str, Any]) -> ModelConfig:
         ContractError, ModelError: naming the parameter, the value and what is admissible.
     """
     v = normalise(values)
+    detector = _detector(v)
     params = _load(str(v["params"]))
     rigid = rigid_model(params)
     changes: dict[str, Any] = {}
@@ -231,7 +282,7 @@ def resolve(values: Mapping[str, Any]) -> ModelConfig:
     return ModelConfig(params=params, rigid=rigid, brake=brake, linear=linear, terms=terms,
                        mode=str(v["mode"]), reanchor_period=float(v["reanchor_period"]),
                        gap_reset=float(v["gap_reset"]), changes=tuple(sorted(changes)),
-                       load=load)
+                       load=load, detector=detector)
 
 
 def check_parameters(values: Mapping[str, Any]) -> None:

@@ -21,14 +21,29 @@ from dvt_model.errors import ContractError
 
 # --------------------------------------------------------------------------- topics and names
 JOINT_STATES = "/dvt/joint_states"
-"""Measured speeds [rad/s] (``velocity``) of :data:`SPEED_NAMES`, one message per sample."""
+"""Measured speeds [rad/s] (``velocity``) of :data:`SPEED_NAMES`, one message per sample;
+``position`` [rad] (unwrapped encoder angles) when the controller measures them (protocol
+version 2, ``docs/interface.md``), else empty."""
 CURRENTS = "/dvt/currents"
 """Measured winding currents [A] (``effort``) of :data:`CURRENT_NAMES`, same stamp."""
 MODEL_JOINT_STATES = "/dvt/model/joint_states"
-"""The model node's prediction (``velocity``), stamped like the measured sample."""
+"""The model node's prediction (``velocity``; ``position`` when the measurement carries
+positions), stamped like the measured sample."""
 MODEL_RESIDUAL = "/dvt/model/residual"
-"""Measured - predicted (``velocity``), stamped like the measured sample."""
+"""Measured - predicted (``velocity``; ``position`` [rad] when the measurement carries
+positions), stamped like the measured sample."""
 DIAGNOSTICS = "/diagnostics"
+MODEL_CHANGE = "/dvt/model/change"
+"""The model node's change alarms (``std_msgs/String``, JSON of
+:meth:`dvt_model.detect.Alarm.to_dict`: ``stamp_s`` detection and ``change_s`` estimated change
+time [s, the residual's stamps, host ROS time], ``name``/``output``, ``direction``, ``shift``
+[rad/s], ...), QoS :data:`CHANGE_QOS`."""
+RECORDER_SNAPSHOT_REQUEST = "/dvt/recorder/snapshot"
+"""Snapshot requests to ``dvt-recorder`` in rolling mode (``std_msgs/String`` JSON
+``{"from", "to", "out", "id"}``), QoS :data:`SNAPSHOT_REQUEST_QOS`."""
+RECORDER_SNAPSHOT_RESULT = "/dvt/recorder/snapshot_result"
+"""``dvt-recorder``'s snapshot answers (``std_msgs/String`` JSON), QoS :data:`CHANGE_QOS`
+(reliable, transient-local, depth 10)."""
 
 CMD_MOTOR_CURRENT = "/dvt/cmd/motor_current"
 CMD_SUN_SPEED = "/dvt/cmd/sun_speed"
@@ -42,6 +57,9 @@ SRV_DRIVER_RELEASE_BRAKES = "/dvt/driver/release_brakes"
 IDENTIFY_REQUEST = "/dvt/identify/request"
 IDENTIFY_RESULT = "/dvt/identify/result"
 SRV_IDENTIFY_RUN = "/dvt/identify/run"
+IDENTIFY_EPISODE = "/dvt/identify/episode"
+"""The identifier's supervisor episode reports (``std_msgs/String`` JSON, ``docs/loop.md``),
+QoS :data:`CHANGE_QOS` (the last 10 for a late subscriber)."""
 
 SAMPLE_TOPICS: tuple[str, ...] = (JOINT_STATES, CURRENTS)
 """The two topics of one controller sample (identical ``header.stamp``)."""
@@ -79,6 +97,12 @@ COMMAND_QOS = QosSpec(depth=10, reliability="reliable")
 LATCHED_QOS = QosSpec(depth=1, reliability="reliable", durability="transient_local")
 """Results a late subscriber must still get (the identifier's result)."""
 DIAGNOSTICS_QOS = QosSpec(depth=10, reliability="reliable")
+CHANGE_QOS = QosSpec(depth=10, reliability="reliable", durability="transient_local")
+"""Events a late subscriber must still get, the last 10 of them: the model node's change alarms
+(:data:`MODEL_CHANGE`) and the recorder's snapshot results."""
+SNAPSHOT_REQUEST_QOS = QosSpec(depth=10, reliability="reliable")
+"""Snapshot requests to the recorder (every request counts; not latched: a restarted recorder
+must not serve old requests again)."""
 
 
 # ------------------------------------------------------------------------ effect-term schema
@@ -266,7 +290,7 @@ def effects_json(terms: Sequence[Mapping[str, Any]]) -> str:
 
 
 # ------------------------------------------------------------- model-node parameter schema
-ParamType = Literal["string", "double", "double_array"]
+ParamType = Literal["string", "double", "double_array", "bool"]
 
 _MAX_REPR = 80
 
@@ -299,7 +323,7 @@ class NodeParam:
     type: ParamType
     unit: str
     description: str
-    default: str | float | tuple[float, ...]
+    default: str | float | bool | tuple[float, ...]
     lo: float | None = None
     hi: float | None = None
     lo_open: bool = False
@@ -318,6 +342,8 @@ class NodeParam:
         unit = f" [{self.unit}]" if self.unit and self.unit != "-" else ""
         if self.type == "double":
             return f"a number in {rng}{unit}"
+        if self.type == "bool":
+            return "true or false"
         if self.type == "double_array":
             sizes = " or ".join(str(s) for s in self.sizes)
             return f"an empty list or {sizes} numbers, each in {rng}{unit}"
@@ -330,7 +356,7 @@ class NodeParam:
             return False
         return not (self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi))
 
-    def check(self, value: Any) -> str | float | tuple[float, ...]:
+    def check(self, value: Any) -> str | float | bool | tuple[float, ...]:
         """The value normalised (str, float or tuple of floats), or :class:`ContractError`
         whose message starts with the parameter name and gives the value and what is admissible.
 
@@ -340,6 +366,10 @@ class NodeParam:
             return self.default
         bad = ContractError(f"{self.name}: {short_repr(value)} is not admissible: expected "
                             f"{self.admissible}")
+        if self.type == "bool":
+            if not isinstance(value, bool):
+                raise bad
+            return value
         if self.type == "string":
             if not isinstance(value, str):
                 raise bad
@@ -372,6 +402,8 @@ class NodeParam:
         return tuple(out)
 
 
+DETECTOR_PREFIX = "detector"
+"""Prefix of the model node's change-detector parameters (``detector.learn_s``, ...)."""
 PARAMS_DEFAULT = "physical"
 LOAD_DEFAULT = "none"
 """Default joint load of the model node: none (the transmission alone)."""
@@ -438,5 +470,36 @@ MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
               "arm on a 100:1 stage), arm-payload (with its 240 lb payload) or a load YAML "
               "path (output_stage: reduction, efficiency; arm: length, mass, payload, "
               "zero_angle); needs the physical model", LOAD_DEFAULT, max_chars=4096),
+    # the change detector (dvt_model.detect.DetectorConfig; docs/loop.md section 1). Read-only
+    # at runtime: the node refuses a change (restart it with other values).
+    NodeParam(f"{DETECTOR_PREFIX}.enabled", "bool", "-",
+              "run the change detector on every residual (alarms on /dvt/model/change and "
+              "/diagnostics); read-only", True),
+    NodeParam(f"{DETECTOR_PREFIX}.sample_rate_hz", "double", "Hz",
+              "nominal sample rate (converts the false-alarm period to samples); read-only",
+              1000.0, lo=0.0, hi=100000.0, lo_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.block_s", "double", "s",
+              "the detector tests the mean residual of consecutive blocks of this length "
+              "(round(block_s * sample_rate_hz) samples; 0 = every sample): averaging removes "
+              "the encoder's quantisation pattern, which is not the noise the CUSUM is designed "
+              "for; read-only", 0.01, lo=0.0, hi=1.0),
+    NodeParam(f"{DETECTOR_PREFIX}.learn_s", "double", "s",
+              "reference window after a start, a model change or an alarm (at least 100 "
+              "samples); read-only", 20.0, lo=0.0, hi=3600.0, lo_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.shift_sigma", "double", "-",
+              "step of the residual to detect, in residual standard deviations; read-only",
+              0.5, lo=0.0, hi=20.0, lo_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.false_alarm_period_s", "double", "s",
+              "designed mean time between false alarms on a clean plant (all outputs, both "
+              "directions); read-only", 14400.0, lo=0.0, hi=1.0e9, lo_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.max_gap_s", "double", "s",
+              "a stamp step longer than this is a gap (the whitening skips a sample); "
+              "read-only", 0.05, lo=0.0, hi=60.0, lo_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.max_phi", "double", "-",
+              "upper clip of the residual's learned AR(1) coefficient; read-only", 0.995,
+              lo=0.0, hi=1.0, hi_open=True),
 )}
 """Every parameter of the model node (:data:`MODEL_NODE`), by name, in declaration order."""
+DETECTOR_PARAMETERS: tuple[str, ...] = tuple(
+    n for n in MODEL_PARAMETERS if n.startswith(DETECTOR_PREFIX + "."))
+"""The detector's parameters (read-only in the node: a change is refused)."""

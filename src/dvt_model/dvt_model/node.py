@@ -5,14 +5,21 @@ Subscribes ``/dvt/joint_states`` and ``/dvt/currents``, pairs them by their iden
 :class:`dvt_model.predictor.Predictor` and publishes ``/dvt/model/joint_states`` (prediction)
 and ``/dvt/model/residual`` (measured - predicted), stamped like the measured sample, plus
 ``/diagnostics`` at 1 Hz. Names and QoS are the contract's (:mod:`dvt_model.contract`).
+When the measured ``/dvt/joint_states`` carries ``position`` (a protocol-version-2
+controller), the prediction carries the predicted ``position`` [rad] and the residual the
+position residual [rad] (measured - predicted), same names; the model's angles are anchored to
+the measured ones at every anchor (:mod:`dvt_model.predictor`). Without measured positions
+both messages carry ``velocity`` only, as before.
 
 Parameters: :data:`dvt_model.contract.MODEL_PARAMETERS` (name, type, unit, meaning, default and
 admissible values; the descriptions the node declares are taken from it): ``params``, ``M``,
 ``D``, ``motor_constant``, ``band_gain``, ``band_time_constant``, ``A``, ``B``, ``effects``,
-``mode``, ``reanchor_period``, ``gap_reset``. All are changeable at runtime through the standard
-parameter services. Every change is validated by :func:`dvt_model.config.build_predictor`
-(the same checks as :func:`dvt_model.config.check_parameters`); a refused change leaves the
-current model running, its reason names the parameter, the value and what is admissible, and
+``mode``, ``reanchor_period``, ``gap_reset``, ``load`` (the joint load on carrier 3:
+``none``, ``arm``, ``arm-payload`` or a load YAML, :mod:`dvt_model.load`). All are
+changeable at runtime through the standard parameter services. Every change is validated by
+:func:`dvt_model.config.build_predictor` (the same checks as
+:func:`dvt_model.config.check_parameters`); a refused change leaves the current model
+running, its reason names the parameter, the value and what is admissible, and
 every refusal (including an unknown parameter name or a value of the wrong type) is counted in
 ``/diagnostics`` as ``rejected_parameter_changes`` (the latest reason as ``last_refusal``).
 
@@ -20,6 +27,24 @@ The linear model: ``A`` and ``B`` must be given together (``SetParametersAtomica
 ``ros2 param load`` or a parameter client's ``set_parameters_atomically``); setting ``A`` or
 ``B`` to an empty list (plain ``SetParameters`` is enough) clears the linear model: the node
 then empties the other one as well and runs the physics again.
+
+The change detector (``detector.*`` parameters, read-only; ``docs/loop.md``): every residual
+goes through :class:`dvt_model.detect.ChangeDetector` (a whitened two-sided CUSUM per output),
+as means of ``detector.block_s`` blocks (10 ms = 10 samples at 1 kHz,
+:class:`~dvt_model.predictor.ResidualBlocks`): the encoder's speed quantisation makes the
+per-sample sun-shaft residual a two-level pattern that no ARMA(1,1) whitening makes Gaussian
+(per sample the detector raised an alarm within 0.1 s of every reference window on a clean
+simulated plant); its 10-ms mean is well behaved. The alarm's ``change_s`` and ``stamp_s`` are
+block starts (resolution ``block_s``). On an alarm the node publishes the alarm's JSON
+(:meth:`~dvt_model.detect.Alarm.to_json`: ``change_s`` the estimated change time, ``stamp_s``
+the detection, ``name``, ``direction``, ``shift`` [rad/s]) on ``/dvt/model/change``
+(:data:`~dvt_model.contract.MODEL_CHANGE`, reliable, transient-local, depth 10) and at once a
+WARN status ``dvt_model: change detector`` on ``/diagnostics``; the detector then re-learns and
+the node keeps running. Every diagnostics period carries the detector's status (``state``
+learning/testing, ``alarms``, ``phi``, ``k``, ``h``, the CUSUMs per output; level WARN for
+:data:`ALARM_HOLD_S` after an alarm, else OK). Every accepted change of the model's parameters
+(a push or a rollback) resets the detector: it learns the new model's residual first.
+``detector.enabled:=false`` turns it off.
 
 The guard: the predictor never publishes a non-finite or diverging prediction; it re-anchors
 to the measurement instead (:data:`dvt_model.predictor.OMEGA_GUARD`), and ``/diagnostics``
@@ -37,15 +62,19 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 
 from dvt_model import rosutil
-from dvt_model.config import build_predictor
+from dvt_model.config import build_predictor, detector_config
 from dvt_model.contract import (
+    CHANGE_QOS,
     CURRENT_NAMES,
     CURRENTS,
+    DETECTOR_PARAMETERS,
     DIAGNOSTICS,
     DIAGNOSTICS_QOS,
     JOINT_STATES,
+    MODEL_CHANGE,
     MODEL_JOINT_STATES,
     MODEL_NODE,
     MODEL_PARAMETERS,
@@ -54,12 +83,17 @@ from dvt_model.contract import (
     NodeParam,
     short_repr,
 )
+from dvt_model.detect import Alarm, ChangeDetector
 from dvt_model.errors import DvtModelError
-from dvt_model.predictor import Predictor
+from dvt_model.predictor import Predictor, ResidualBlocks
 from dvt_model.recording.pairing import LivePairer
 
 _REFUSABLE = (DvtModelError, ValueError, TypeError, ArithmeticError, np.linalg.LinAlgError)
 """What a parameter check may raise; each becomes a counted refusal, never a crash."""
+ALARM_HOLD_S = 10.0
+"""The periodic detector status stays WARN this long after an alarm [s, node clock]."""
+DETECTOR_STATUS = f"{MODEL_NODE}: change detector"
+"""Name of the detector's ``DiagnosticStatus``."""
 
 
 def _descriptor(spec: NodeParam) -> ParameterDescriptor:
@@ -90,6 +124,15 @@ class ModelNode(Node):
             self.declare_parameter(spec.name, _initial(spec), _descriptor(spec))
         self.predictor: Predictor
         self.predictor, self.model_desc = build_predictor(self._values())
+        setup = detector_config(self._values())
+        self.detector: ChangeDetector | None = None
+        self.blocks: ResidualBlocks | None = None
+        if setup is not None:
+            self.detector = ChangeDetector(setup.config)
+            self.blocks = ResidualBlocks(setup.block, len(SPEED_NAMES),
+                                         setup.config.max_gap_s)
+        self.detector_resets = 0
+        self._alarm_at: float | None = None  # node clock [s] of the last alarm
         self.rejected = 0
         self.last_refusal = ""
         self.bad_messages = 0
@@ -104,12 +147,14 @@ class ModelNode(Node):
         self.pub_res = self.create_publisher(JointState, MODEL_RESIDUAL, rosutil.SENSOR_QOS)
         self.pub_diag = self.create_publisher(rosutil.DiagnosticArray, DIAGNOSTICS,
                                               rosutil.qos(DIAGNOSTICS_QOS))
+        self.pub_change = self.create_publisher(String, MODEL_CHANGE, rosutil.qos(CHANGE_QOS))
         self.create_subscription(JointState, JOINT_STATES, lambda m: self._on_msg(m, 0),
                                  rosutil.SENSOR_QOS)
         self.create_subscription(JointState, CURRENTS, lambda m: self._on_msg(m, 1),
                                  rosutil.SENSOR_QOS)
         self.create_timer(1.0, self._diagnostics)
-        self.get_logger().info(f"model: {self.model_desc}, mode {self.predictor.mode}")
+        self.get_logger().info(f"model: {self.model_desc}, mode {self.predictor.mode}, change "
+                               "detector " + ("on" if self.detector is not None else "off"))
 
     @property
     def guard_reanchors(self) -> int:
@@ -130,6 +175,10 @@ class ModelNode(Node):
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:
         changes: dict[str, Any] = {}
         for p in params:
+            if p.name in DETECTOR_PARAMETERS:
+                return self._refuse(f"{p.name}: read-only (the detector's settings are fixed "
+                                    f"at start; restart the node to change them), got "
+                                    f"{short_repr(p.value)}")
             if p.name in MODEL_PARAMETERS:
                 if p.type_ == Parameter.Type.NOT_SET:
                     return self._refuse(f"{p.name}: cannot be unset: expected "
@@ -154,6 +203,9 @@ class ModelNode(Node):
         self._guard_before += self.predictor.guard_reanchors
         self.predictor, self.model_desc = predictor, desc
         self._clear_next = clear
+        if self.detector is not None:  # a push or rollback: learn the new model's residual
+            self.detector.reset()
+            self.detector_resets += 1
         self.get_logger().info(f"model changed: {desc}, mode {predictor.mode}")
         return SetParametersResult(successful=True)
 
@@ -173,19 +225,62 @@ class ModelNode(Node):
             speeds = dict(zip(js.name, js.velocity, strict=True))
             currents = dict(zip(cur.name, cur.effort, strict=True))
             omega = [speeds[n] for n in SPEED_NAMES]
+            theta = None
+            if len(js.position) == len(js.name):  # positions measured (else empty)
+                angles = dict(zip(js.name, js.position, strict=True))
+                theta = [angles[n] for n in SPEED_NAMES]
             im = currents[CURRENT_NAMES[0]]
             ib = [currents[n] for n in CURRENT_NAMES[1:]]
-            pred = self.predictor.update(stamp_ns * 1e-9, im, ib, omega)
+            pred = self.predictor.update(stamp_ns * 1e-9, im, ib, omega, theta)
         except (KeyError, ValueError, DvtModelError) as exc:
             self.bad_messages += 1
             if self.bad_messages <= 5 or self.bad_messages % 1000 == 0:
                 self.get_logger().warning(f"sample at {stamp_ns} ns ignored: {exc!r}")
             return
-        self.pub_pred.publish(rosutil.joint_state(stamp_ns, SPEED_NAMES,
-                                                  velocity=pred.predicted))
-        self.pub_res.publish(rosutil.joint_state(stamp_ns, SPEED_NAMES,
-                                                 velocity=pred.residual))
+        residual = pred.residual.tolist()
+        out = rosutil.joint_state(stamp_ns, SPEED_NAMES, velocity=pred.predicted.tolist())
+        res = rosutil.joint_state(stamp_ns, SPEED_NAMES, velocity=residual)
+        if pred.position_residual is not None:
+            out.position = pred.predicted_position.tolist()
+            res.position = pred.position_residual.tolist()
+        self.pub_pred.publish(out)
+        self.pub_res.publish(res)
         self.published += 1
+        if self.blocks is not None:  # after publishing: the residual's latency comes first
+            block = self.blocks.add(stamp_ns * 1e-9, residual)
+            if block is not None and self.detector is not None:
+                alarm = self.detector.update(block[0], block[1])
+                if alarm is not None:
+                    self._on_alarm(alarm)
+
+    def _on_alarm(self, alarm: Alarm) -> None:
+        """Publish an alarm on the change topic and as WARN on ``/diagnostics``."""
+        self._alarm_at = self.get_clock().now().nanoseconds * 1e-9
+        self.pub_change.publish(String(data=alarm.to_json()))
+        message = (f"change on {alarm.name} at {alarm.change_s:.3f} (shift {alarm.shift:+.4g} "
+                   f"rad/s, detected at {alarm.stamp_s:.3f})")
+        self.get_logger().warning(f"change detector: {message}")
+        if self.detector is not None:
+            self.pub_diag.publish(rosutil.diagnostic(self, DETECTOR_STATUS, rosutil.WARN,
+                                                     message, self._detector_values()))
+
+    def _detector_values(self) -> dict[str, str]:
+        det = self.detector
+        if det is None:
+            return {"state": "off"}
+        values = det.status()
+        values["resets"] = str(self.detector_resets)
+        last = det.counters.last_alarm
+        if last is not None:
+            values["last_alarm"] = last.to_json()
+        return values
+
+    def _position_rms(self) -> dict[str, str]:
+        rms = self.predictor.position_residual_rms
+        if rms is None:
+            return {}
+        return {"position_residual_rms_sun_shaft": f"{rms[0]:.6g}",
+                "position_residual_rms_carrier3": f"{rms[1]:.6g}"}
 
     def _diagnostics(self) -> None:
         rms = self.predictor.residual_rms
@@ -201,11 +296,29 @@ class ModelNode(Node):
             "guard_reanchors": guard,
             "residual_rms_sun_shaft": f"{rms[0]:.6g}",
             "residual_rms_carrier3": f"{rms[1]:.6g}",
+            **self._position_rms(),
             "bad_messages": self.bad_messages,
             "unpaired": self.pairer.unpaired,
             "rejected_parameter_changes": self.rejected,
             "last_refusal": self.last_refusal,
         }))
+        det = self.detector
+        if det is None:
+            self.pub_diag.publish(rosutil.diagnostic(self, DETECTOR_STATUS, rosutil.OK,
+                                                     "off (detector.enabled is false)",
+                                                     {"state": "off"}))
+            return
+        now = self.get_clock().now().nanoseconds * 1e-9
+        last = det.counters.last_alarm
+        if self._alarm_at is not None and last is not None and now - self._alarm_at < ALARM_HOLD_S:
+            level, text = rosutil.WARN, (f"change on {last.name} at {last.change_s:.3f} (shift "
+                                         f"{last.shift:+.4g} rad/s)")
+        else:
+            level = rosutil.OK
+            text = ("learning the residual" if det.learning else "testing") + (
+                f"; {det.counters.alarms} alarm(s)" if det.counters.alarms else "")
+        self.pub_diag.publish(rosutil.diagnostic(self, DETECTOR_STATUS, level, text,
+                                                 self._detector_values()))
 
 
 def main(args: list[str] | None = None) -> None:

@@ -37,8 +37,8 @@ node reports it in ``/diagnostics`` with level WARN) and the prediction is the a
 
 from __future__ import annotations
 
-from collections import deque
 import dataclasses
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -273,3 +273,47 @@ class Predictor:
         return Prediction(stamp=stamp, predicted=predicted, residual=residual, gear=gear,
                           anchored=anchored, predicted_position=position,
                           position_residual=pos_res)
+
+
+class ResidualBlocks:
+    """Means of consecutive blocks of ``size`` residual samples (the change detector's input).
+
+    :meth:`add` takes one sample (stamp [s], residual per output) and returns
+    ``(stamp of the block's first sample, means)`` when a block is complete, else ``None``.
+    A stamp step that is not in ``(0, max_gap_s]`` drops the unfinished block (a block never
+    spans a gap or a restart). Plain floats, O(outputs) per sample.
+    """
+
+    def __init__(self, size: int, outputs: int = 2, max_gap_s: float = 0.05) -> None:
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise SimulationError(f"block size: expected an integer >= 1, got {size!r}")
+        self.size = size
+        self.max_gap_s = float(max_gap_s)
+        self._sum = [0.0] * outputs
+        self._n = 0
+        self._first = 0.0
+        self._last = -float("inf")
+        self.dropped = 0
+        """Unfinished blocks dropped at a gap."""
+
+    def add(self, stamp: float, residual: list[float]) -> tuple[float, list[float]] | None:
+        """Add one sample; the completed block's ``(first stamp, means)`` or ``None``."""
+        step = stamp - self._last
+        self._last = stamp
+        if self._n and not 0.0 < step <= self.max_gap_s:
+            self._n = 0
+            self.dropped += 1
+        acc = self._sum
+        if self._n == 0:
+            self._first = stamp
+            for i, r in enumerate(residual):
+                acc[i] = r
+        else:
+            for i, r in enumerate(residual):
+                acc[i] += r
+        self._n += 1
+        if self._n < self.size:
+            return None
+        self._n = 0
+        inv = 1.0 / self.size
+        return self._first, [a * inv for a in acc]

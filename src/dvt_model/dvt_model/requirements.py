@@ -8,21 +8,30 @@ turns about the joint at angle ``theta`` from the horizontal while accelerating 
     P     = T_max * omega                                                         (W)
 
 With the thesis's 71 in, 200 lb arm and 240 lb load at 1 rad/s^2 this gives about 3181 N m,
-the source of the 3200 N m requirement. :func:`arm_torque` is the one place the equation
-lives; ``dvt-model requirement`` and ``dvt-model design`` both call it.
+the source of the 3200 N m requirement. The equation lives in :class:`dvt_model.load.Arm` (the
+same arm the plant and the model node carry as a joint load); :func:`arm_torque` is its
+functional form for ``dvt-model requirement`` and ``dvt-model design``.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-INCH = 0.0254  # m
-POUND = 0.45359237  # kg
-G = 9.81  # m/s^2, as the thesis rounds it
+from dvt_model.load import INCH, POUND, Arm
+from dvt_model.load import G as G
+
+__all__ = [
+    "INCH",
+    "POUND",
+    "G",
+    "Requirement",
+    "arm_inertia",
+    "arm_torque",
+    "baseline_requirement",
+]
 
 
 @dataclass(frozen=True)
@@ -36,17 +45,13 @@ class Requirement:
     power: float
 
 
-def _check_arm(length: float, arm_mass: float, load_mass: float) -> None:
-    if not length > 0.0:
-        raise ValueError(f"length: expected > 0 m, got {length!r}")
-    if arm_mass < 0.0 or load_mass < 0.0:
-        raise ValueError(f"masses: expected >= 0 kg, got arm {arm_mass!r}, load {load_mass!r}")
-
-
 def arm_inertia(length: float, arm_mass: float, load_mass: float) -> float:
-    """Inertia of the uniform arm plus tip load about the joint [kg m^2] (eq. 1.1, first term)."""
-    _check_arm(length, arm_mass, load_mass)
-    return arm_mass * length**2 / 3.0 + load_mass * length**2
+    """Inertia of the uniform arm plus tip load about the joint [kg m^2] (eq. 1.1, first term).
+
+    Raises:
+        ModelError (a ValueError): a non-positive length or negative mass.
+    """
+    return Arm(length=length, mass=arm_mass, payload=load_mass).inertia
 
 
 def arm_torque(length: float, arm_mass: float, load_mass: float, alpha: float | NDArray[np.float64],
@@ -58,11 +63,9 @@ def arm_torque(length: float, arm_mass: float, load_mass: float, alpha: float | 
             [rad/s^2] (scalar or array). g: [m/s^2]. theta: arm angle from horizontal [rad].
 
     Raises:
-        ValueError: a non-positive length or negative mass.
+        ModelError (a ValueError): a non-positive length or negative mass.
     """
-    inertia = arm_inertia(length, arm_mass, load_mass)
-    gravity = (arm_mass * length / 2.0 + load_mass * length) * g * math.cos(theta)
-    return inertia * alpha + gravity
+    return Arm(length=length, mass=arm_mass, payload=load_mass, g=g).torque(alpha, theta)
 
 
 def baseline_requirement(length: float = 71 * INCH, arm_mass: float = 200 * POUND,

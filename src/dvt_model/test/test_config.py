@@ -93,6 +93,21 @@ BAD = [
     ("reanchor_period", {"reanchor_period": 0.0}, "reanchor_period"),
     ("gap_reset", {"gap_reset": -1.0}, "gap_reset"),
     ("gap_reset", {"gap_reset": [0.5]}, "gap_reset"),
+    ("load", {"load": "piano"}, "unknown load"),
+    ("load", {"load": "/no/such/load.yaml"}, "cannot read"),
+    ("load", {"load": 3.0}, "load"),
+    ("load", {"load": "x" * 100_000}, "load"),
+    ("load", {"load": "arm", "A": [-1.0, 0.0, 0.0, -1.0], "B": [1.0, 0.0, 0.0, 1.0]},
+     "physical model"),
+    ("detector.enabled", {"detector.enabled": "yes"}, "true or false"),
+    ("detector.sample_rate_hz", {"detector.sample_rate_hz": 0.0}, r"\(0, 100000\]"),
+    ("detector.block_s", {"detector.block_s": 2.0}, r"\[0, 1\]"),
+    ("detector.learn_s", {"detector.learn_s": 0.2}, "at least 100 samples"),
+    ("detector.shift_sigma", {"detector.shift_sigma": 21.0}, r"\(0, 20\]"),
+    ("detector.false_alarm_period_s", {"detector.false_alarm_period_s": 0.01},
+     "at least 10 samples"),
+    ("detector.max_gap_s", {"detector.max_gap_s": float("nan")}, "detector.max_gap_s"),
+    ("detector.max_phi", {"detector.max_phi": -0.1}, r"\[0, 1\)"),
     ("brake_gain", {"brake_gain": [8.0, 8.0, 8.0]}, "unknown parameter"),
     ("no_such_parameter", {"no_such_parameter": 1.0}, "unknown parameter"),
 ]
@@ -179,3 +194,39 @@ def test_physics_matches_the_parameter_set():
     assert isinstance(predictor.model, HybridModel)
     np.testing.assert_allclose(predictor.model.rigid.M,
                                HybridModel.from_params(params).rigid.M)
+
+
+def test_load_parameter_builds_the_loaded_model():
+    from dvt_model.hybrid import HybridModel
+    from dvt_model.load import LOAD_PRESETS
+    predictor, desc = build_predictor({"load": "arm-payload"})
+    assert isinstance(predictor.model, HybridModel)
+    assert predictor.model.load is LOAD_PRESETS["arm-payload"]
+    assert "load 'arm-payload'" in desc
+    bare, _ = build_predictor({})
+    assert isinstance(bare.model, HybridModel) and bare.model.load is None
+    assert predictor.model.rigid.M[1, 1] == pytest.approx(
+        bare.model.rigid.M[1, 1] + LOAD_PRESETS["arm-payload"].reflected_inertia)
+
+
+def test_detector_settings_from_parameters():
+    from dvt_model.config import detector_config
+    from dvt_model.errors import ParameterError
+
+    setup = detector_config({})
+    assert setup is not None
+    assert setup.block == 10  # 10 ms at 1 kHz
+    assert setup.config.sample_rate_hz == pytest.approx(100.0)
+    assert setup.config.learn_s == 20.0
+    assert resolve({}).detector == setup
+    assert detector_config({"detector.enabled": False}) is None
+    assert detector_config({"detector.block_s": 0.0}).block == 1
+    one = detector_config({"detector.block_s": 0.0, "detector.sample_rate_hz": 500.0})
+    assert one.config.sample_rate_hz == 500.0
+    # together: at least 100 detector samples in the reference window
+    with pytest.raises(ParameterError, match=r"detector\.learn_s: .*100 samples.*got 0\.5"):
+        check_parameters({"detector.learn_s": 0.5})
+    with pytest.raises(ParameterError, match=r"detector\.max_gap_s: .*got 0\.005"):
+        check_parameters({"detector.max_gap_s": 0.005})
+    with pytest.raises(DvtModelError, match=r"detector\.shift_sigma: -1"):
+        check_parameters({"detector.shift_sigma": -1})

@@ -19,7 +19,11 @@ from dvt_model.params import BrakeParams
 def test_schema_names_and_defaults():
     assert list(MODEL_PARAMETERS) == ["params", "M", "D", "motor_constant", "band_gain",
                                       "band_time_constant", "A", "B", "effects", "mode",
-                                      "reanchor_period", "gap_reset"]
+                                      "reanchor_period", "gap_reset", "load",
+                                      "detector.enabled", "detector.sample_rate_hz",
+                                      "detector.block_s", "detector.learn_s",
+                                      "detector.shift_sigma", "detector.false_alarm_period_s",
+                                      "detector.max_gap_s", "detector.max_phi"]
     for name, spec in MODEL_PARAMETERS.items():
         assert spec.name == name
         assert spec.description and spec.unit
@@ -71,3 +75,37 @@ def test_short_repr_bounds_length():
     assert len(short_repr("x" * 10**6)) < 200
     assert len(short_repr(list(range(10**5)))) < 200
     assert short_repr([1.0, 2.0]) == "[1.0, 2.0]"
+
+
+def test_change_topics_and_detector_schema():
+    from dataclasses import fields
+
+    from dvt_model.contract import (
+        CHANGE_QOS,
+        DETECTOR_PARAMETERS,
+        MODEL_CHANGE,
+        MODEL_PARAMETERS,
+        RECORDER_SNAPSHOT_REQUEST,
+        RECORDER_SNAPSHOT_RESULT,
+    )
+    from dvt_model.detect import DetectorConfig
+
+    assert MODEL_CHANGE == "/dvt/model/change"
+    assert RECORDER_SNAPSHOT_REQUEST == "/dvt/recorder/snapshot"
+    assert RECORDER_SNAPSHOT_RESULT == "/dvt/recorder/snapshot_result"
+    assert (CHANGE_QOS.depth, CHANGE_QOS.reliability, CHANGE_QOS.durability) == (
+        10, "reliable", "transient_local")
+    # every DetectorConfig field (but the output names) is a node parameter, same default
+    cfg = DetectorConfig()
+    for f in fields(DetectorConfig):
+        if f.name == "names":
+            continue
+        spec = MODEL_PARAMETERS[f"detector.{f.name}"]
+        assert spec.default == getattr(cfg, f.name), f.name
+        assert spec.name in DETECTOR_PARAMETERS
+    assert MODEL_PARAMETERS["detector.enabled"].check(None) is True
+    assert MODEL_PARAMETERS["detector.enabled"].check(False) is False
+    with pytest.raises(ContractError, match=r"detector\.enabled: 1 .*true or false"):
+        MODEL_PARAMETERS["detector.enabled"].check(1)
+    with pytest.raises(ContractError, match=r"detector\.max_phi: 1\.0 .*\[0, 1\)"):
+        MODEL_PARAMETERS["detector.max_phi"].check(1.0)

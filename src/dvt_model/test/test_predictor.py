@@ -86,3 +86,84 @@ def test_guard_catches_non_finite_state(params):
 
 def test_guard_bound_is_100_times_the_safe_sun_speed():
     assert abs(OMEGA_GUARD - 100 * 2400 * 2 * np.pi / 60) < 1e-9
+
+
+# -- angles --------------------------------------------------------------------------------------
+
+def _loaded_run(params, n=1500):
+    from dvt_model.load import LOAD_PRESETS
+    load = LOAD_PRESETS["arm-payload"]
+    model = HybridModel.from_params(params, load=load)
+    t = np.arange(n) * 1e-3
+    im = np.full(n, 20.0)
+    ib = np.zeros((n, 3))
+    ib[:, 2] = 5.0  # gear 3 lifts the arm
+    state0 = model.initial_state(theta=(0.0, load.carrier3_angle(-0.3)),
+                                 locked=(False, False, True), capacity=(0.0, 0.0, 40.0))
+    return load, t, im, ib, model.simulate(t, im, ib, state0=state0)
+
+
+def test_predicted_angles_follow_a_loaded_run_when_the_load_is_known(params):
+    load, t, im, ib, res = _loaded_run(params)
+    assert res.theta[-1, 1] - res.theta[0, 1] > 0.5  # the arm rose
+    p = Predictor(HybridModel.from_params(params, load=load), params.brake)
+    out = [p.update(t[k], im[k], ib[k], res.omega[k], res.theta[k]) for k in range(len(t))]
+    assert out[0].anchored and out[0].position_residual is not None
+    np.testing.assert_allclose(out[0].predicted_position, res.theta[0])
+    worst = max(np.max(np.abs(o.position_residual)) for o in out
+                if o.position_residual is not None)
+    assert worst < 1e-6
+    rms = p.position_residual_rms
+    assert rms is not None and np.all(rms < 1e-6)
+    # without the load the model runs away from the measured angles
+    bare = Predictor(HybridModel.from_params(params), params.brake)
+    last = [bare.update(t[k], im[k], ib[k], res.omega[k], res.theta[k])
+            for k in range(len(t))][-1]
+    assert last.position_residual is not None and np.max(np.abs(last.position_residual)) > 0.1
+
+
+def test_angles_without_measurement_continue_and_carry_no_residual(params):
+    p = Predictor(HybridModel.from_params(params), params.brake)
+    a = p.update(0.0, 2.0, (0, 0, 0), (10.0, 0.0))
+    b = p.update(0.001, 2.0, (0, 0, 0), (10.0, 0.0))
+    assert a.position_residual is None and b.position_residual is None
+    assert b.predicted_position[0] == pytest.approx(0.5 * 0.001 * (10.0 + b.predicted[0]), rel=1e-3)
+    assert p.position_residual_rms is None
+    # positions appear: the angles are anchored to them
+    c = p.update(0.002, 2.0, (0, 0, 0), (10.0, 0.0), (5.0, 1.0))
+    assert c.anchored and c.position_residual is not None
+    np.testing.assert_allclose(c.predicted_position, (5.0, 1.0))
+    # a non-finite measured angle counts as not measured
+    d = p.update(0.003, 2.0, (0, 0, 0), (10.0, 0.0), (float("nan"), 1.0))
+    assert d.position_residual is None and d.predicted_position[0] > 5.0
+
+
+def test_linear_model_integrates_angles(params):
+    from dvt_model.linear import LinearModel
+    A = np.array([[-1.0, 0.0], [0.0, -1.0]])
+    B = np.zeros((2, 2))
+    p = Predictor(LinearModel(A, B), params.brake)
+    p.update(0.0, 0.0, (0, 0, 0), (2.0, 1.0), (0.0, 0.0))
+    out = p.update(0.01, 0.0, (0, 0, 0), (2.0, 1.0), (0.02, 0.01))
+    assert out.predicted_position[0] == pytest.approx(2.0 * (1 - np.exp(-0.01)), rel=1e-3)
+    assert out.position_residual is not None
+
+
+def test_residual_blocks_average_and_drop_at_gaps():
+    from dvt_model.predictor import ResidualBlocks
+
+    blocks = ResidualBlocks(4, 2, max_gap_s=0.05)
+    out = [blocks.add(k * 0.001, [float(k), -2.0 * k]) for k in range(8)]
+    assert out[:3] == [None] * 3 and out[4:7] == [None] * 3
+    assert out[3] == (0.0, [1.5, -3.0])
+    first, means = out[7]
+    assert first == pytest.approx(0.004) and means == pytest.approx([5.5, -11.0])
+    # a gap drops the unfinished block; the next block starts after it
+    assert blocks.add(0.008, [1.0, 1.0]) is None
+    assert blocks.add(0.2, [2.0, 2.0]) is None
+    assert blocks.dropped == 1
+    for k in range(1, 3):
+        assert blocks.add(0.2 + k * 0.001, [2.0, 2.0]) is None
+    assert blocks.add(0.203, [6.0, 2.0]) == (0.2, [3.0, 2.0])
+    with pytest.raises(SimulationError, match="block size"):
+        ResidualBlocks(0)

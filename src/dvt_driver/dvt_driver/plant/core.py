@@ -73,6 +73,17 @@ zero in the presets) acts on carrier 3 through the output stage: reflected inert
 effects may add an undeclared ``gravity_arm``, a ``mesh_ripple`` and a ``position_friction``
 (:mod:`dvt_driver.plant.hidden`).
 
+A changing plant. ``hidden.changes`` (and ``hidden.damping_scale``) make the plant change while
+it runs (:func:`dvt_driver.plant.hidden.scheduled_values`): Coulomb friction and windage per
+member, the scale of the transmission's viscous damping ``D`` (applied as the extra generalised
+torque ``-(scale - 1) D omega``) and the declared joint load (a step: the model is rebuilt with
+the new load, speeds continuous). The schedule is evaluated against the physics time at the
+start of each sample period: at every change's ``at`` and, during a ramp, every
+:data:`RAMP_UPDATE_S` (the ramp is a staircase of 10 ms steps). :meth:`PlantSim.add_change`
+adds a change at runtime (``dvt-plant`` ``--change-at``, SIGHUP). Every change the plant starts
+is appended to :attr:`PlantSim.changes_applied` (plant time ``at_s``, the change) and written
+into ``truth.yaml``.
+
 Protocol versions. The plant speaks versions 1..``protocol_version`` (default 2,
 ``dvt-plant --protocol-version 1`` emulates an old controller): it answers a HELLO of a version
 it speaks with that version (HELLO_ACK of version 2 carries the encoders' counts per
@@ -121,14 +132,16 @@ from dvt_driver.link.protocol import (
     wrap_count,
 )
 from dvt_driver.plant.hidden import (
+    Change,
     FrictionForces,
     HiddenEffects,
     WetBrakeEngagement,
     friction_velocity_floor,
+    scheduled_values,
 )
 from dvt_model.dynamics import rigid_model
 from dvt_model.hybrid import HybridModel, HybridState
-from dvt_model.load import JointLoad
+from dvt_model.load import JointLoad, load_joint_load
 from dvt_model.params import TransmissionParams
 
 __all__ = [
@@ -154,6 +167,8 @@ MIN_SAMPLE_PERIOD_US = 500
 MAX_SAMPLE_PERIOD_US = 1_000_000
 FIRMWARE_ID = "dvt-plant-sim 0.1"
 
+RAMP_UPDATE_S = 0.01
+"""Update period of a ramping change [s of plant time]."""
 _BRAKE_ON = 0.005  # A: a coil current above this counts as "band applied" (status BRAKEk)
 _NOISE_BLOCK = 1024  # samples of sensor noise drawn at once
 _OSC_STEP = 0.35  # rad: largest phase advance of the backlash contact oscillation per sub-step
@@ -349,6 +364,7 @@ class PlantSim:
         self.protocol_version = protocol_version
         self.session_version = 0  # version of the open session (0: none)
         self.load = load
+        self._load0 = load  # the declared load at the start (truth.yaml; changes may replace it)
         self.params = params
         self.hidden = hidden if hidden is not None else HiddenEffects()
         self.seed = seed
@@ -390,6 +406,16 @@ class PlantSim:
             wn = h.backlash.natural_frequency(j_c3)
             self._step_limit = min(self._step_limit, _OSC_STEP / wn)
         self._friction: FrictionForces | None = None
+        self._rigid0 = rigid0
+        # the changing plant: the effects in force (base + changes so far), the D correction
+        self._base_hidden = self.hidden
+        self._damping_extra: Array | None = None  # -(scale - 1) D, or None
+        self._next_change_t = math.inf if not self.hidden.changes else 0.0
+        self._started_changes = 0
+        self.changes_applied: list[dict[str, Any]] = []
+        """Every change the plant started: ``{"at_s": plant time, "change": mapping}``."""
+        if self.hidden.damping_scale != 1.0:
+            self._damping_extra = -(self.hidden.damping_scale - 1.0) * self.model.rigid.D
 
         # physical state
         self.state: HybridState = self.model.initial_state()
@@ -472,12 +498,7 @@ class PlantSim:
         self._period_us = period_us
         self._n_sub = n
         self._h = period / n
-        self._friction = None
-        if self.hidden.friction_members():
-            rigid = self.model.rigid
-            forms = {m: rigid.kin.vector(m) for m in self.hidden.friction_members()}
-            mob = {m: float(a @ self._m_inv @ a) for m, a in forms.items()}
-            self._friction = FrictionForces(self.hidden, forms, mob, self._h)
+        self._rebuild_friction()
         self._bumps = []
         for member, bump in self.hidden.position_friction.items():
             a = self.model.rigid.kin.vector(member)
@@ -506,13 +527,60 @@ class PlantSim:
                 "encoders": {"sun_counts_per_rev": self.sensors.counts_per_rev,
                              "output_counts_per_rev": self.sensors.output_counts_per_rev,
                              "output_member": "carrier3"},
-                "load": (None if self.load is None
-                         else {"name": self.load.name, **self.load.to_mapping()})}
+                "load": (None if self._load0 is None
+                         else {"name": self._load0.name, **self._load0.to_mapping()})}
 
     def truth_yaml(self) -> str:
         """Text of ``truth.yaml`` for this plant."""
-        return self.hidden.to_truth_yaml(params_name=self.params.name, seed=self.seed,
-                                         sample_period_us=self._period_us, extra=self.describe())
+        return self._base_hidden.to_truth_yaml(
+            params_name=self.params.name, seed=self.seed, sample_period_us=self._period_us,
+            extra=self.describe(),
+            applied=self.changes_applied if self._base_hidden.changes else None)
+
+    # ------------------------------------------------------------------ a changing plant
+    def add_change(self, change: Change) -> None:
+        """Add ``change`` to the schedule (its ``at`` in plant time; at or before
+        :attr:`physics_time`: applied at the next sample)."""
+        base = self._base_hidden
+        self._base_hidden = dataclasses.replace(base, changes=(*base.changes, change))
+        self.hidden = dataclasses.replace(self.hidden, changes=self._base_hidden.changes)
+        self._next_change_t = min(self._next_change_t, change.at)
+
+    def _apply_schedule(self) -> None:
+        """Bring the changeable effects to the schedule's values at the present plant time."""
+        t = self._t_phys
+        base = self._base_hidden
+        v = scheduled_values(base, t + 1e-6)  # 1 us: the physics time's rounding
+        ordered = sorted(base.changes, key=lambda c: c.at)
+        for ch in ordered[self._started_changes:v.started]:
+            self.changes_applied.append({"at_s": round(t, 6), "change": ch.to_mapping()})
+        self._started_changes = v.started
+        if v.load is not None:
+            load = None if v.load == "none" else load_joint_load(v.load)
+            if (load is None) != (self.load is None) or (
+                    load is not None and self.load is not None and load != self.load):
+                self.load = load
+                self.model = HybridModel(self._rigid0, self.params.brake,
+                                         extra_force=self._extra_force,
+                                         engagement=self._engagement, load=load,
+                                         angle_force=self.model.angle_force)
+        self.hidden = dataclasses.replace(self.hidden, coulomb=v.coulomb, windage=v.windage,
+                                          damping_scale=v.damping_scale)
+        self._damping_extra = (None if v.damping_scale == 1.0 else
+                               -(v.damping_scale - 1.0) * self.model.rigid.D)
+        self._rebuild_friction()
+        self._memo_key = None
+        upcoming = [c.at for c in ordered[v.started:]]
+        nxt = min(upcoming) if upcoming else math.inf
+        self._next_change_t = min(nxt, t + RAMP_UPDATE_S) if v.ramping else nxt
+
+    def _rebuild_friction(self) -> None:
+        self._friction = None
+        if self.hidden.friction_members():
+            rigid = self.model.rigid
+            forms = {m: rigid.kin.vector(m) for m in self.hidden.friction_members()}
+            mob = {m: float(a @ self._m_inv @ a) for m, a in forms.items()}
+            self._friction = FrictionForces(self.hidden, forms, mob, self._h)
 
     # ------------------------------------------------------------------ protocol
     def handle(self, msg: Message) -> list[Message]:
@@ -656,6 +724,8 @@ class PlantSim:
         if key == self._memo_key:
             return self._memo_force
         f = self._friction.generalised(omega) if self._friction is not None else np.zeros(2)
+        if self._damping_extra is not None:
+            f = f + self._damping_extra @ omega
         if self.hidden.backlash is not None:
             f = f.copy()
             f[1] -= self._spline_torque(key[1])
@@ -787,6 +857,8 @@ class PlantSim:
         Returns:
             The sample (sequence number and clock of the present instant).
         """
+        if self._t_phys >= self._next_change_t - 1e-6:
+            self._apply_schedule()
         self._control(self.t_us)
         values = self._measure(self._clamped)
         self._clamped = False

@@ -36,6 +36,31 @@ YAML schema (units SI; every top-level key optional)::
     position_friction:       # a friction bump at one angle of a member (a tight spot)
       carrier3: {amplitude: 0.3, center: 1.0, width: 0.3}   # [N m], [rad], [rad]
 
+A plant that changes while it runs (``changes``, plus the base ``damping_scale``)::
+
+    damping_scale: 1.0       # optional: the transmission's viscous damping D times this (>= 0)
+    changes:                 # optional: time-varying effects, applied in order of ``at``
+      - at: 30.0             # [s] of plant time (physics time since the plant started)
+        ramp: 60.0           # optional [s]: linear from the values in force at ``at`` (0: step)
+        coulomb: {carrier3: 0.4}   # sets these members' Coulomb levels [N m] (others kept)
+        windage: {sun: 2.0e-6}     # sets these members' quadratic drag [N m s^2]
+        damping_scale: 0.8         # sets the scale of D (oil warming: damping falls)
+        load: arm-payload          # sets the declared joint load (a step; dvt_model.load
+                                   # preset or load YAML path; ``none`` removes it)
+        note: "band wear"          # optional text, copied into truth.yaml
+
+A change sets the values it lists (members it does not list keep theirs); with ``ramp`` the
+numbers move linearly from the values in force at ``at`` to the new ones over ``ramp``
+seconds (a load always steps). :func:`scheduled_values` evaluates a schedule at a time (pure);
+:class:`~dvt_driver.plant.core.PlantSim` applies it as its physics time passes, records every
+change it applies (``PlantSim.changes_applied``) and writes both into ``truth.yaml`` (``hidden:
+changes:`` the schedule; ``changes_applied:`` what happened, with the plant time and, from
+``dvt-plant``, the host wall-clock time). ``dvt-plant`` also takes changes at runtime
+(``--change-at T:SPEC``, ``--change-file`` + SIGHUP; :mod:`dvt_driver.plant.server`).
+Presets: ``wear`` (Coulomb friction on carrier 3 rising), ``oil_warmup`` (damping falling),
+``payload_added`` (the arm's payload added; run the plant with ``--load arm``),
+``friction_step`` (a clear Coulomb step on both shafts, for tests).
+
 Position-dependent effects (they need the angles the plant integrates, ``theta = (theta_sun,
 theta_carrier3)`` [rad] from the plant's start; a member's angle is its linear form times
 ``theta``):
@@ -73,7 +98,8 @@ Friction on a member acts on that member's speed ``v = a . omega`` (``a`` its li
 hump at low speed.
 
 Presets (``config/*.yaml`` in this package): ``none``, ``coulomb``, ``stribeck``, ``windage``,
-``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``
+``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``,
+and the changing plants ``wear``, ``oil_warmup``, ``payload_added``, ``friction_step``
 (:func:`available_presets`, :func:`load_hidden`).
 
 Errors name the source, the key path and the value, e.g.
@@ -82,6 +108,7 @@ Errors name the source, the key path and the value, e.g.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -97,22 +124,27 @@ from dvt_driver.errors import HiddenEffectsError
 from dvt_model import friction
 from dvt_model.brake import capacity_step
 from dvt_model.errors import ModelError
-from dvt_model.load import JointLoad, parse_joint_load
+from dvt_model.load import JointLoad, load_joint_load, parse_joint_load
 
 __all__ = [
     "BACKLASH_LOCATIONS",
     "MEMBERS",
     "Backlash",
+    "Change",
     "HiddenEffects",
     "MeshRipple",
     "PositionFriction",
+    "ScheduledValues",
     "StribeckFriction",
     "WetBrake",
     "WetBrakeEngagement",
     "available_presets",
+    "changes_from_spec",
     "friction_velocity_floor",
     "load_hidden",
+    "parse_change",
     "parse_hidden",
+    "scheduled_values",
 ]
 
 Array = NDArray[np.float64]
@@ -262,6 +294,100 @@ class WetBrake:
 
 
 @dataclass(frozen=True)
+class Change:
+    """One scheduled change of the plant (see the module docstring, ``changes``).
+
+    Attributes:
+        at: plant time at which it starts [s] (physics time since the plant's start).
+        ramp: duration of the linear ramp to the new values [s] (0: a step).
+        coulomb: member -> new Coulomb level [N m].
+        windage: member -> new quadratic drag coefficient [N m s^2].
+        damping_scale: new scale of the transmission's viscous damping D, or ``None``.
+        load: new declared joint load (preset name, ``none`` or a load YAML path), or ``None``.
+        note: free text for ``truth.yaml``.
+    """
+
+    at: float
+    ramp: float = 0.0
+    coulomb: dict[str, float] = field(default_factory=dict)
+    windage: dict[str, float] = field(default_factory=dict)
+    damping_scale: float | None = None
+    load: str | None = None
+    note: str = ""
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The change as a plain YAML-able mapping (same schema as the input)."""
+        out: dict[str, Any] = {"at": self.at}
+        if self.ramp > 0.0:
+            out["ramp"] = self.ramp
+        if self.coulomb:
+            out["coulomb"] = dict(self.coulomb)
+        if self.windage:
+            out["windage"] = dict(self.windage)
+        if self.damping_scale is not None:
+            out["damping_scale"] = self.damping_scale
+        if self.load is not None:
+            out["load"] = self.load
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+@dataclass(frozen=True)
+class ScheduledValues:
+    """The changeable values in force at one time (:func:`scheduled_values`).
+
+    Attributes:
+        coulomb, windage: member -> level (the base merged with every change so far).
+        damping_scale: scale of the transmission's D.
+        load: the declared load named by the latest change that set one (``None``: no change
+            named a load yet, the plant keeps its own).
+        ramping: True while a ramp is in progress (the values move).
+        started: number of changes whose ``at`` has passed.
+    """
+
+    coulomb: dict[str, float]
+    windage: dict[str, float]
+    damping_scale: float
+    load: str | None
+    ramping: bool
+    started: int
+
+
+def scheduled_values(base: HiddenEffects, t: float) -> ScheduledValues:
+    """The changeable values of ``base`` with its ``changes`` applied up to plant time ``t`` [s].
+
+    Changes apply in order of ``at`` (ties: in the order given); a ramping change moves each
+    number it lists linearly from the value in force at its ``at`` (all earlier changes
+    evaluated at that instant) to its target.
+    """
+    coulomb = dict(base.coulomb)
+    windage = dict(base.windage)
+    scale = base.damping_scale
+    load: str | None = None
+    ramping = False
+    started = 0
+    for ch in sorted(base.changes, key=lambda c: c.at):
+        if t < ch.at:
+            break
+        started += 1
+        u = 1.0
+        if ch.ramp > 0.0 and t < ch.at + ch.ramp:
+            u = (t - ch.at) / ch.ramp
+            ramping = True
+        for target, new in ((coulomb, ch.coulomb), (windage, ch.windage)):
+            for m, v in new.items():
+                v0 = target.get(m, 0.0)
+                target[m] = v0 + u * (v - v0)
+        if ch.damping_scale is not None:
+            scale = scale + u * (ch.damping_scale - scale)
+        if ch.load is not None:
+            load = ch.load
+    return ScheduledValues(coulomb=coulomb, windage=windage, damping_scale=scale, load=load,
+                           ramping=ramping, started=started)
+
+
+@dataclass(frozen=True)
 class HiddenEffects:
     """The plant's hidden effects; every one optional (the default is a clean plant).
 
@@ -276,6 +402,9 @@ class HiddenEffects:
         gravity_arm: an undeclared :class:`~dvt_model.load.JointLoad` or ``None``.
         mesh_ripple: :class:`MeshRipple` or ``None``.
         position_friction: member -> :class:`PositionFriction`.
+        damping_scale: the transmission's viscous damping D is scaled by this (1: as the
+            parameter set says), >= 0.
+        changes: the schedule of :class:`Change` (empty: the plant does not change).
         source: where it was loaded from (file name or preset), for messages.
     """
 
@@ -289,13 +418,16 @@ class HiddenEffects:
     gravity_arm: JointLoad | None = None
     mesh_ripple: MeshRipple | None = None
     position_friction: dict[str, PositionFriction] = field(default_factory=dict)
+    damping_scale: float = 1.0
+    changes: tuple[Change, ...] = ()
     source: str = "<default>"
 
     @property
     def is_clean(self) -> bool:
         """True when no effect is configured."""
         return not (self.coulomb or self.stribeck or self.windage or self.backlash
-                    or self.measurement_delay > 0.0 or self.wet_brake or self.has_angle_effects)
+                    or self.measurement_delay > 0.0 or self.wet_brake or self.has_angle_effects
+                    or self.damping_scale != 1.0 or self.changes)
 
     @property
     def has_angle_effects(self) -> bool:
@@ -324,6 +456,10 @@ class HiddenEffects:
             names.append("mesh_ripple")
         if self.position_friction:
             names.append("position_friction")
+        if self.damping_scale != 1.0:
+            names.append("damping_change")
+        if self.changes:
+            names.append("changes")
         return names or ["none"]
 
     def to_mapping(self) -> dict[str, Any]:
@@ -359,10 +495,15 @@ class HiddenEffects:
             out["position_friction"] = {m: {"amplitude": b.amplitude, "center": b.center,
                                             "width": b.width}
                                         for m, b in self.position_friction.items()}
+        if self.damping_scale != 1.0:
+            out["damping_scale"] = self.damping_scale
+        if self.changes:
+            out["changes"] = [c.to_mapping() for c in self.changes]
         return out
 
     def to_truth_yaml(self, *, params_name: str, seed: int | None, sample_period_us: int,
-                      extra: Mapping[str, Any] | None = None) -> str:
+                      extra: Mapping[str, Any] | None = None,
+                      applied: list[dict[str, Any]] | None = None) -> str:
         """Text of ``truth.yaml``: the hidden effects plus what else defines the plant.
 
         Args:
@@ -370,6 +511,8 @@ class HiddenEffects:
             seed: the plant's random seed (``None`` if not seeded).
             sample_period_us: controller sample period [µs].
             extra: further plant settings (sensors, limits, ...) stored under ``plant``.
+            applied: the changes the plant applied so far (``changes_applied``: plant time
+                ``at_s``, host ``unix_s`` when known, the change), if it has a schedule.
         """
         doc: dict[str, Any] = {
             "truth_version": 1,
@@ -379,14 +522,17 @@ class HiddenEffects:
             "plant": {"params": params_name, "seed": seed,
                       "sample_period_us": int(sample_period_us), **dict(extra or {})},
         }
+        if applied is not None:
+            doc["changes_applied"] = list(applied)
         header = ("# Hidden effects of the simulated DVT plant (ground truth for tests).\n"
                   "# The identifier never reads this file.\n")
         return header + yaml.safe_dump(_plain(doc), sort_keys=False, default_flow_style=False)
 
     def friction_members(self) -> list[str]:
         """Members with any friction or windage term, in a stable order."""
+        changed = {m for c in self.changes for m in (*c.coulomb, *c.windage)}
         return [m for m in MEMBERS
-                if m in self.coulomb or m in self.stribeck or m in self.windage]
+                if m in self.coulomb or m in self.stribeck or m in self.windage or m in changed]
 
 
 def _plain(obj: Any) -> Any:
@@ -480,7 +626,78 @@ def _member(name: Any, where: str) -> str:
 
 
 _TOP = ("coulomb", "stribeck", "windage", "backlash", "measurement_delay", "wet_brake",
-        "friction_velocity", "gravity_arm", "mesh_ripple", "position_friction")
+        "friction_velocity", "gravity_arm", "mesh_ripple", "position_friction",
+        "damping_scale", "changes")
+_CHANGE_KEYS = ("at", "ramp", "coulomb", "windage", "damping_scale", "load", "note")
+MAX_DAMPING_SCALE = 10.0
+"""Largest admissible ``damping_scale``."""
+
+
+def changes_from_spec(spec: str, at: float) -> list[Change]:
+    """The changes ``dvt-plant --change-at T:SPEC`` adds: ``spec`` is a preset name or a
+    hidden-effects YAML path. If it has ``changes``, those, shifted in time so that the first
+    starts at ``at`` [s of plant time] (their spacing kept); else one step at ``at`` to its
+    ``coulomb``, ``windage`` and ``damping_scale`` (e.g. ``40:coulomb`` on a clean plant: a
+    friction step at 40 s).
+
+    Raises:
+        HiddenEffectsError: ``spec`` does not load, or changes nothing that can change.
+    """
+    h = load_hidden(spec)
+    if h.changes:
+        first = min(c.at for c in h.changes)
+        return [dataclasses.replace(c, at=at + c.at - first) for c in h.changes]
+    if not (h.coulomb or h.windage or h.damping_scale != 1.0):
+        raise HiddenEffectsError(
+            f"{h.source}: changes nothing at runtime (only coulomb, windage, damping_scale and "
+            f"changes can change while the plant runs), effects {h.effect_names()}")
+    return [Change(at=at, coulomb=dict(h.coulomb), windage=dict(h.windage),
+                   damping_scale=None if h.damping_scale == 1.0 else h.damping_scale,
+                   note=f"step to {h.source}")]
+
+
+def parse_change(data: Any, where: str, at: float | None = None) -> Change:
+    """Validate one change (a mapping; ``at`` may be left out when ``at`` is given here, e.g.
+    a change applied now) into a :class:`Change`.
+
+    Raises:
+        HiddenEffectsError: naming ``where``, the key and the value.
+    """
+    d = _map(data, where)
+    for key in d:
+        if key not in _CHANGE_KEYS:
+            raise HiddenEffectsError(f"{where}.{key}: unknown key (expected one of "
+                                     f"{list(_CHANGE_KEYS)}), value {d[key]!r}")
+    if "at" in d:
+        t = _num(d["at"], f"{where}.at", lo=0.0)
+    elif at is not None:
+        t = float(at)
+    else:
+        raise HiddenEffectsError(f"{where}.at: missing (the plant time of the change [s])")
+    coulomb = {_member(m, f"{where}.coulomb"): _num(v, f"{where}.coulomb.{m}", lo=0.0)
+               for m, v in _map(d.get("coulomb") or {}, f"{where}.coulomb").items()}
+    windage = {_member(m, f"{where}.windage"): _num(v, f"{where}.windage.{m}", lo=0.0)
+               for m, v in _map(d.get("windage") or {}, f"{where}.windage").items()}
+    scale = (None if d.get("damping_scale") is None else
+             _num(d["damping_scale"], f"{where}.damping_scale", lo=0.0, hi=MAX_DAMPING_SCALE))
+    load = d.get("load")
+    if load is not None:
+        if not isinstance(load, str) or not load:
+            raise HiddenEffectsError(f"{where}.load: expected a load preset name, 'none' or a "
+                                     f"load YAML path, got {load!r}")
+        try:
+            load_joint_load(load)
+        except (ModelError, OSError) as exc:
+            raise HiddenEffectsError(f"{where}.load: {exc}") from exc
+    note = d.get("note", "")
+    if not isinstance(note, str):
+        raise HiddenEffectsError(f"{where}.note: expected text, got {note!r}")
+    if not (coulomb or windage or scale is not None or load is not None):
+        raise HiddenEffectsError(f"{where}: changes nothing (expected at least one of coulomb, "
+                                 f"windage, damping_scale, load), got {dict(d)!r}")
+    return Change(at=t, ramp=_num(d.get("ramp", 0.0), f"{where}.ramp", lo=0.0, hi=1e6),
+                  coulomb=coulomb, windage=windage, damping_scale=scale,
+                  load=None if load is None else str(load), note=note)
 
 
 def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
@@ -620,10 +837,21 @@ def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
                 center=_num(d["center"], f"{bw}.center"),
                 width=_num(d["width"], f"{bw}.width", lo=0.0, lo_open=True, hi=10.0))
 
+    scale = 1.0
+    if data.get("damping_scale") is not None:
+        scale = _num(data["damping_scale"], f"{w}damping_scale", lo=0.0, hi=MAX_DAMPING_SCALE)
+    changes: list[Change] = []
+    if data.get("changes") is not None:
+        raw_changes = data["changes"]
+        if not isinstance(raw_changes, list):
+            raise HiddenEffectsError(f"{w}changes: expected a list of changes, got "
+                                     f"{raw_changes!r}")
+        changes = [parse_change(c, f"{w}changes[{i}]") for i, c in enumerate(raw_changes)]
+
     return HiddenEffects(coulomb=coulomb, stribeck=stribeck, windage=windage, backlash=backlash,
                          measurement_delay=delay, wet_brake=wet, friction_velocity=fv,
                          gravity_arm=gravity, mesh_ripple=ripple, position_friction=bumps,
-                         source=source)
+                         damping_scale=scale, changes=tuple(changes), source=source)
 
 
 # ---------------------------------------------------------------------------------------------

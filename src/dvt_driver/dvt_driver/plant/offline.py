@@ -134,10 +134,13 @@ def run_offline(experiment: Experiment, params: TransmissionParams,
 
 def record_offline(path: str | Path, experiment: Experiment, params: TransmissionParams,
                    hidden: HiddenEffects | None = None, seed: int = 1,
-                   start_ns: int = 1_700_000_000_000_000_000) -> Path:
-    """Run offline and write a contract bag at ``path`` with its ``truth.yaml``."""
-    run = run_offline(experiment, params, hidden, seed)
+                   start_ns: int = 1_700_000_000_000_000_000,
+                   load: JointLoad | None = None) -> Path:
+    """Run offline and write a contract bag at ``path`` with its ``truth.yaml``; the
+    ``/dvt/joint_states`` messages carry the encoder positions (protocol version 2)."""
+    run = run_offline(experiment, params, hidden, seed, load=load)
     stamps = start_ns + np.round(run.t * 1e9).astype(np.int64)
     truth: dict[str, Any] = yaml.safe_load(run.truth) or {}
     truth["made_by"] = f"dvt_driver.plant.offline.record_offline (experiment {experiment.name})"
-    return write_run(path, stamps, run.speeds, run.currents, truth=truth)
+    return write_run(path, stamps, run.speeds, run.currents, truth=truth,
+                     positions=run.positions)

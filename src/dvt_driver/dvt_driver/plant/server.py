@@ -40,6 +40,17 @@ running (session, sequence and clock continue; samples produced meanwhile are lo
 ``--fault-reset-at S`` (or ``SIGUSR2``) restarts the controller: sequence number and clock
 restart at 0, outputs off, the session is closed until the next HELLO.
 
+A changing plant (:mod:`dvt_driver.plant.hidden`, ``changes``): a schedule in the ``--hidden``
+preset or file, plus ``--change-at T:SPEC`` (repeatable: at plant time ``T`` [s after start]
+the changes of ``SPEC``, a preset or hidden-effects YAML; a preset without ``changes`` such as
+``coulomb`` is a step to its friction, :func:`~dvt_driver.plant.hidden.changes_from_spec`),
+and at runtime ``SIGHUP``, which reads ``--change-file PATH`` (one change as YAML, the keys of a
+``changes`` entry without ``at``: ``coulomb``, ``windage``, ``damping_scale``, ``load``,
+``ramp``, ``note``) and applies it now; an unreadable or invalid file is reported on stderr and
+changes nothing. Every change the plant starts is printed on stderr (``dvt-plant: change at
+plant time ...``) and written into ``--truth-out`` at once (``changes_applied``: ``at_s`` plant
+time, ``unix_s`` host wall-clock time of the sample at which it took effect, the change).
+
 On start it prints ``READY <link path>`` (flushed) on stdout; on SIGINT/SIGTERM it stops, removes
 its symlink and prints ``STATS <json>`` (counters, CPU use) on stdout, then exits 0.
 """
@@ -63,6 +74,7 @@ from types import FrameType as PyFrame
 from typing import Any
 
 import numpy as np
+import yaml
 
 from dvt_driver.errors import DvtDriverError
 from dvt_driver.link.protocol import (
@@ -78,7 +90,7 @@ from dvt_driver.plant.core import (
     PlantSim,
     SafetyLimits,
 )
-from dvt_driver.plant.hidden import load_hidden
+from dvt_driver.plant.hidden import Change, changes_from_spec, load_hidden, parse_change
 from dvt_model.errors import DvtModelError
 from dvt_model.load import available_loads, load_joint_load
 from dvt_model.params import load_parameters
@@ -198,13 +210,14 @@ class PlantServer:
         disconnect_at, reset_at: scheduled faults [s after start] (``None``: never).
         disconnect_for: how long the device stays away on a disconnect [s].
         duration: stop after this long [s] (``None``: until a signal).
+        change_file: the change applied on :meth:`request_change` (SIGHUP), or ``None``.
     """
 
     def __init__(self, sim: PlantSim, port: PtyPort, *, baud: int = DEFAULT_BAUD,
                  faults: FaultInjector | None = None, tx_buffer: int = 65536,
                  truth_out: Path | None = None, disconnect_at: float | None = None,
                  disconnect_for: float = 0.2, reset_at: float | None = None,
-                 duration: float | None = None) -> None:
+                 duration: float | None = None, change_file: Path | None = None) -> None:
         self.sim = sim
         self.port = port
         self.bytes_per_s = baud / 10.0
@@ -215,6 +228,9 @@ class PlantServer:
         self.disconnect_for = disconnect_for
         self.reset_at = reset_at
         self.duration = duration
+        self.change_file = change_file
+        self._want_change = False
+        self._n_applied = 0
         self.decoder = FrameDecoder(synced=False)
         self._tx: deque[tuple[float, bytes]] = deque()  # (line start time, frame)
         self._line_end = 0.0  # when the emulated line finishes the last queued frame
@@ -227,6 +243,7 @@ class PlantServer:
             "samples_produced": 0, "samples_sent": 0, "samples_lost_offline": 0,
             "tx_overruns": 0, "host_overruns": 0, "frames_received": 0, "replies_sent": 0,
             "disconnects": 0, "resets": 0, "max_burst": 0, "late_samples": 0,
+            "changes_applied": 0, "change_requests_refused": 0,
         }
 
     # ---------------------------------------------------------------- control from outside
@@ -242,9 +259,48 @@ class PlantServer:
         """Restart the controller at the next iteration (signal-safe)."""
         self._want_reset = True
 
+    def request_change(self) -> None:
+        """Apply the change of ``change_file`` at the next iteration (signal-safe)."""
+        self._want_change = True
+
     # ---------------------------------------------------------------- helpers
-    def _write_truth(self) -> None:
-        if self.truth_out is None or self._written_period == self.sim.sample_period_us:
+    def _read_change(self) -> None:
+        """Read ``change_file`` and add its change at the present plant time."""
+        if self.change_file is None:
+            print("dvt-plant: SIGHUP ignored: no --change-file given", file=sys.stderr,
+                  flush=True)
+            self.counters["change_requests_refused"] += 1
+            return
+        where = str(self.change_file)
+        try:
+            data = yaml.safe_load(self.change_file.read_text(encoding="utf-8"))
+            if isinstance(data, dict) and "at" in data:
+                raise DvtDriverError(f"{where}.at: not allowed (a --change-file change applies "
+                                     f"at once), got {data['at']!r}")
+            change = parse_change(data, where, at=round(self.sim.physics_time, 6))
+        except (OSError, yaml.YAMLError, DvtDriverError, DvtModelError) as exc:
+            print(f"dvt-plant: change refused: {exc}", file=sys.stderr, flush=True)
+            self.counters["change_requests_refused"] += 1
+            return
+        self.sim.add_change(change)
+
+    def _note_changes(self, sample_wall: float) -> None:
+        """Stamp newly applied changes with the wall-clock time and rewrite the truth."""
+        applied = self.sim.changes_applied
+        if len(applied) == self._n_applied:
+            return
+        for entry in applied[self._n_applied:]:
+            entry["unix_s"] = round(sample_wall, 6)
+            print(f"dvt-plant: change at plant time {entry['at_s']:.3f} s (unix "
+                  f"{sample_wall:.3f}): {json.dumps(entry['change'])}", file=sys.stderr,
+                  flush=True)
+        self.counters["changes_applied"] += len(applied) - self._n_applied
+        self._n_applied = len(applied)
+        self._write_truth(force=True)
+
+    def _write_truth(self, force: bool = False) -> None:
+        if self.truth_out is None or (
+                not force and self._written_period == self.sim.sample_period_us):
             return
         self._written_period = self.sim.sample_period_us
         tmp = self.truth_out.with_name(self.truth_out.name + ".tmp")
@@ -381,8 +437,14 @@ class PlantServer:
                         print("dvt-plant: controller reset", file=sys.stderr, flush=True)
                         sim.reset_controller()
                         anchor_wall, anchor_us = deadline, sim.t_us
+                    if self._want_change:
+                        self._want_change = False
+                        self._read_change()
                     streaming = sim.session_open
+                    n_applied = len(sim.changes_applied)
                     values = sim.tick()
+                    if len(sim.changes_applied) != n_applied:  # wall time of this sample
+                        self._note_changes(time.time() - (time.monotonic() - deadline))
                     self.counters["samples_produced"] += 1
                     if streaming:
                         frame = encode(values.to_sample())
@@ -476,7 +538,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how long the device stays away on a disconnect [s] (default 0.2)")
     p.add_argument("--fault-reset-at", type=float, default=None, metavar="S",
                    help="controller reset S seconds after start (also: SIGUSR2)")
+    p.add_argument("--change-at", action="append", default=[], metavar="T:SPEC",
+                   help="at plant time T [s] apply the changes of SPEC (preset or hidden-effects "
+                        "YAML; its 'changes' shifted to start at T, else a step to its "
+                        "coulomb/windage/damping_scale); repeatable")
+    p.add_argument("--change-file", type=Path, default=None, metavar="PATH",
+                   help="on SIGHUP apply the change in this YAML file at once (keys of a "
+                        "'changes' entry without 'at')")
     return p
+
+
+def parse_change_at(text: str) -> list[Change]:
+    """The changes of one ``--change-at T:SPEC`` (errors name the option and the value)."""
+    t_text, sep, spec = text.partition(":")
+    try:
+        t = float(t_text)
+    except ValueError:
+        t = math.nan
+    if not sep or not spec or not (math.isfinite(t) and t >= 0):
+        raise DvtDriverError(f"--change-at: expected T:SPEC with T >= 0 s and SPEC a preset or "
+                             f"YAML path, got {text!r}")
+    try:
+        return changes_from_spec(spec, t)
+    except DvtDriverError as exc:
+        raise DvtDriverError(f"--change-at {text}: {exc}") from exc
 
 
 def _period_us(args: argparse.Namespace) -> int:
@@ -495,6 +580,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         params = load_parameters(args.params)
         hidden = load_hidden(args.hidden)
+        extra_changes = [c for text in args.change_at for c in parse_change_at(text)]
         load = load_joint_load(args.load)
         if not (math.isfinite(args.watchdog_ms) and args.watchdog_ms >= 0):
             raise DvtDriverError(f"--watchdog-ms: expected a number >= 0, got {args.watchdog_ms!r}")
@@ -511,6 +597,8 @@ def main(argv: list[str] | None = None) -> int:
         sim = PlantSim(params, hidden, _period_us(args), args.seed, limits=limits,
                        max_step=args.max_step, baud=args.baud, load=load,
                        protocol_version=args.protocol_version)
+        for change in extra_changes:
+            sim.add_change(change)
         faults = FaultInjector(args.fault_corrupt, args.fault_drop, args.fault_garbage,
                                None if args.seed is None else args.seed + 1)
     except (DvtDriverError, DvtModelError) as exc:
@@ -521,7 +609,7 @@ def main(argv: list[str] | None = None) -> int:
     server = PlantServer(sim, port, baud=args.baud, faults=faults, tx_buffer=args.tx_buffer,
                          truth_out=args.truth_out, disconnect_at=args.fault_disconnect_at,
                          disconnect_for=args.fault_disconnect_for, reset_at=args.fault_reset_at,
-                         duration=args.duration)
+                         duration=args.duration, change_file=args.change_file)
 
     def on_stop(signum: int, frame: PyFrame | None) -> None:
         server.request_stop()
@@ -536,6 +624,11 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_stop)
     signal.signal(signal.SIGUSR1, on_usr1)
     signal.signal(signal.SIGUSR2, on_usr2)
+
+    def on_hup(signum: int, frame: PyFrame | None) -> None:
+        server.request_change()
+
+    signal.signal(signal.SIGHUP, on_hup)
     try:
         port.open()
     except OSError as exc:

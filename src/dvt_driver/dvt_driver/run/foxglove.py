@@ -23,14 +23,18 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from foxglove.websocket import ServerListener
+
 from dvt_driver.run.foxglove_core import (
     CHANNELS,
     FOXGLOVE_NODE,
+    LATCHED_CHANNELS,
     SETTINGS_DEFAULTS,
     SETTINGS_DOC,
     Bridge,
@@ -83,6 +87,25 @@ class Channels:
             self.writer = None
 
 
+class _Subscriptions(ServerListener):
+    """foxglove-sdk server listener: notes which latched channels got a new subscriber (the
+    node re-sends their last message from its executor, not from the server's thread)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.pending: set[str] = set()
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        if channel.topic in LATCHED_CHANNELS:
+            with self.lock:
+                self.pending.add(channel.topic)
+
+    def take(self) -> set[str]:
+        with self.lock:
+            out, self.pending = self.pending, set()
+        return out
+
+
 def _schema(spec: ChannelSpec) -> Any:
     import json
 
@@ -117,9 +140,16 @@ def _node_class() -> type:
             import foxglove
 
             foxglove.set_log_level("WARN")
-            self.server = foxglove.start_server(
-                name="dvt", host=self.settings.host, port=self.settings.port,
-                context=self.out.context)
+            self.listener = _Subscriptions()
+            try:
+                self.server = foxglove.start_server(
+                    name="dvt", host=self.settings.host, port=self.settings.port,
+                    context=self.out.context, server_listener=self.listener)
+            except Exception as exc:  # FoxgloveError: address in use, bad host, ...
+                self.out.close()
+                raise BridgeSettingsError(f"host/port: cannot serve on "
+                                          f"{self.settings.host}:{self.settings.port}: "
+                                          f"{exc}") from exc
             self.port = self.server.port
             self.received = 0
             qos = {"sensor": rosutil.SENSOR_QOS, "command": rosutil.COMMAND_QOS,
@@ -138,6 +168,7 @@ def _node_class() -> type:
                            qos["latched"] if spec.source == IDENTIFY_RESULT else
                            qos["command"] if spec.source in COMMAND_TOPICS else qos["sensor"])
                 self.create_subscription(cls, spec.source, self._msg_cb(spec.source), profile)
+            self.create_timer(0.1, self._resend_latched)
             self.get_logger().info(
                 f"serving {len(CHANNELS)} channels on ws://{self.settings.host}:{self.port} "
                 f"(1 kHz streams at {self.settings.rate_hz:g} Hz)"
@@ -163,6 +194,14 @@ def _node_class() -> type:
                 self.received += 1
                 self.out.log(self.bridge.handle(topic, msg, self.get_clock().now().nanoseconds))
             return cb
+
+        def _resend_latched(self) -> None:
+            # a client that subscribes after the identifier's result still gets it (a message
+            # that came between the subscription and this timer arrives twice)
+            for topic in self.listener.take():
+                last = self.bridge.last.get(topic)
+                if last is not None:
+                    self.out.log([last])
 
         def on_shutdown_hook(self) -> None:
             self.server.stop()

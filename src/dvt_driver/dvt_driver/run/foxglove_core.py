@@ -265,6 +265,10 @@ CHANNELS: tuple[ChannelSpec, ...] = (
 
 CHANNEL_TOPICS: frozenset[str] = frozenset(c.topic for c in CHANNELS)
 
+LATCHED_CHANNELS: frozenset[str] = frozenset({IDENTIFY_RESULT, IDENTIFY})
+"""Channels whose last message a client gets when it subscribes (the identifier's result is
+latched on the ROS side too: it comes once per run)."""
+
 
 def channel(topic: str) -> ChannelSpec:
     """The spec of channel ``topic`` (``KeyError`` naming it if the bridge has none)."""
@@ -707,6 +711,8 @@ class Bridge:
         self.state = StateTracker(settings.band_engaged_current, settings.state_period_s)
         self.alarms = AlarmTracker()
         self.forwarded: dict[str, int] = {c.topic: 0 for c in CHANNELS}
+        self.last: dict[str, Output] = {}
+        """The last message of each of :data:`LATCHED_CHANNELS` (re-sent to new subscribers)."""
         self._specs = {c.source: c for c in CHANNELS if c.source is not None}
 
     @property
@@ -744,6 +750,8 @@ class Bridge:
             out.extend((ALARMS, a, t) for a in self.alarms.update(data))
         elif topic == IDENTIFY_RESULT:
             out.append((IDENTIFY, identify_json(data["data"]), t))
-        for ch, _, _ in out:
-            self.forwarded[ch] += 1
+        for o in out:
+            self.forwarded[o[0]] += 1
+            if o[0] in LATCHED_CHANNELS:
+                self.last[o[0]] = o
         return out

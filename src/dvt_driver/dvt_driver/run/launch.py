@@ -8,6 +8,8 @@ Usage::
                    [--driver-param NAME:=VALUE ...] [--model-param NAME:=VALUE ...]
                    [--record-param NAME:=VALUE ...] [--record-topics T ...]
                    [--compression zstd|none] [--max-missing N] [--no-model] [--log-dir DIR]
+                   [--ring-minutes M] [--ring-dir DIR] [--ring-segment-seconds S]
+                   [--change-at T:SPEC ...] [--change-file PATH]
                    [--foxglove] [--foxglove-port P] [--foxglove-host H] [--foxglove-param N:=V]
                    [--start-discovery-server [IP:]PORT] [--discovery-server HOST[:PORT] ...]
                    [--static-peers A[,B...]]
@@ -28,8 +30,21 @@ Usage::
 5. ``dvt-recorder`` with ``output:=DIR`` if ``--record``, once the experiment's command
    publishers exist (ready when it subscribes to the recorded DVT topics);
 
+5b. a second ``dvt-recorder`` in rolling mode if ``--ring-minutes M`` (node
+   ``dvt_recorder_ring``; ring directory ``--ring-dir``, default ``<log dir>/ring``; segments
+   of ``--ring-segment-seconds``, default 10; the recorded topics plus ``/dvt/model/change``):
+   it keeps the last M minutes and answers snapshot requests on ``/dvt/recorder/snapshot``
+   (``docs/loop.md``). When a normal recording runs beside it, the normal recorder's snapshot
+   topics are remapped to ``/dvt/recorder/bag/snapshot[_result]`` so that only the ring answers;
+
 6. ``dvt-foxglove`` if ``--foxglove`` (the Foxglove WebSocket bridge, ``docs/foxglove.md``;
    ready when it prints ``READY ws://...``);
+
+A changing plant (sim): the ``--hidden`` preset may carry a schedule (``wear``,
+``oil_warmup``, ``payload_added``, ``friction_step``); ``--change-at T:SPEC`` (repeatable) and
+``--change-file PATH`` are passed to ``dvt-plant``, and a SIGHUP to the launcher is forwarded to
+the plant (it then applies the change in ``--change-file`` at once). The plant writes every
+change it applies with its times into ``truth.yaml`` (copied into the bag when recording).
 
 then the run ends with the experiment, or after ``--duration`` seconds, or on Ctrl-C. ``hw``
 does the same against a real controller on ``--port`` (no plant, no truth).
@@ -90,17 +105,22 @@ from dvt_model.contract import (
     COMMAND_TOPICS,
     DEFAULT_RECORD_TOPICS,
     JOINT_STATES,
+    MODEL_CHANGE,
     MODEL_JOINT_STATES,
     MODEL_TOPICS,
+    RECORDER_SNAPSHOT_REQUEST,
+    RECORDER_SNAPSHOT_RESULT,
     SAMPLE_TOPICS,
 )
 
 BIN = Path(sys.executable).parent
 READY_TIMEOUT = {"plant": 30.0, "driver": 30.0, "model": 30.0, "recorder": 30.0,
-                 "experiment": 30.0, "foxglove": 30.0, "discovery": 10.0}
+                 "ring": 30.0, "experiment": 30.0, "foxglove": 30.0, "discovery": 10.0}
 """Longest wait for each child to become ready [s]."""
-STOP_TIMEOUT = {"experiment": 10.0, "recorder": 30.0, "model": 10.0, "driver": 10.0,
-                "plant": 10.0, "foxglove": 10.0, "discovery": 5.0}
+STOP_TIMEOUT = {"experiment": 10.0, "recorder": 30.0, "ring": 30.0, "model": 10.0,
+                "driver": 10.0, "plant": 10.0, "foxglove": 10.0, "discovery": 5.0}
+RING_NODE = "dvt_recorder_ring"
+"""Node name of the rolling recorder ``dvt-launch --ring-minutes`` starts."""
 """Longest wait for each child to exit after SIGINT before SIGKILL [s]."""
 RECORDED_DVT_TOPICS = (*SAMPLE_TOPICS, *MODEL_TOPICS)
 """The high-rate streams a recording must hold (checked after the run)."""
@@ -378,6 +398,13 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
                              "interface)")
     common.add_argument("--foxglove-param", action="append", default=[], metavar="NAME:=VALUE",
                         help="extra dvt-foxglove parameter, e.g. rate_hz:=50 (repeatable)")
+    common.add_argument("--ring-minutes", type=float, default=None, metavar="M",
+                        help="also run a rolling recorder keeping the last M minutes "
+                             "(snapshots on request, docs/loop.md)")
+    common.add_argument("--ring-dir", default=None, metavar="DIR",
+                        help="its ring directory (default <log dir>/ring; may exist)")
+    common.add_argument("--ring-segment-seconds", type=float, default=10.0, metavar="S",
+                        help="length of one ring segment [s] (default 10)")
     common.add_argument("--start-discovery-server", default=None, metavar="[IP:]PORT",
                         help="start a Fast DDS discovery server (e.g. 0.0.0.0:11811) and use it "
                              "(docs/multihost.md)")
@@ -390,6 +417,12 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     sim.add_argument("--hidden", default="none",
                      help="hidden-effects preset or YAML file of the plant (default none)")
     sim.add_argument("--seed", type=int, default=0, help="plant noise seed (default 0)")
+    sim.add_argument("--change-at", action="append", default=[], metavar="T:SPEC",
+                     help="plant change: at plant time T [s] the changes of SPEC (preset or "
+                          "hidden-effects YAML; a preset without a schedule is a step to its "
+                          "friction), passed to dvt-plant (repeatable)")
+    sim.add_argument("--change-file", default=None, metavar="PATH",
+                     help="change applied by the plant on SIGHUP (forwarded by the launcher)")
     sim.add_argument("--plant-arg", action="append", default=[], metavar="ARG",
                      help="extra dvt-plant argument, e.g. --plant-arg=--crc-error-rate=0.01")
     hw = sub.add_parser("hw", parents=[common], help="real controller on a serial port")
@@ -407,8 +440,6 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
             except argparse.ArgumentTypeError as exc:
                 p.error(str(exc))
     if args.experiment is not None:
-
-
         try:
             _experiment(args)
         except ExperimentError as exc:
@@ -424,6 +455,23 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
         p.error("--foxglove-port/--foxglove-host/--foxglove-param need --foxglove")
     if args.foxglove_port is not None and not 0 <= args.foxglove_port <= 65535:
         p.error(f"--foxglove-port: expected 0..65535, got {args.foxglove_port}")
+    if args.ring_minutes is not None and not (0 < args.ring_minutes <= 24 * 60):
+        p.error(f"--ring-minutes: expected 0 < M <= 1440, got {args.ring_minutes}")
+    if args.ring_minutes is not None and not (
+            0 < args.ring_segment_seconds <= args.ring_minutes * 60):
+        p.error(f"--ring-segment-seconds: expected 0 < S <= ring minutes * 60, got "
+                f"{args.ring_segment_seconds}")
+    if args.ring_dir is not None and args.ring_minutes is None:
+        p.error("--ring-dir needs --ring-minutes")
+    if args.mode == "sim":
+        from dvt_driver.errors import DvtDriverError
+        from dvt_driver.plant.server import parse_change_at
+
+        for text in args.change_at:
+            try:
+                parse_change_at(text)
+            except DvtDriverError as exc:
+                p.error(str(exc))
     if args.record is not None and Path(args.record).exists():
         p.error(f"--record: {args.record} already exists (a recording never overwrites)")
     return args
@@ -568,6 +616,16 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     started = time.time()
     exp_status: int | None = None
     say(f"logs in {logdir}")
+    plant_pid: dict[str, int] = {}
+
+    def forward_hup(signum: int, frame: object) -> None:
+        pid = plant_pid.get("pid")
+        if pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGHUP)
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    old_hup = signal.signal(signal.SIGHUP, forward_hup) if main_thread else None
     try:
         if getattr(args, "discovery_listen", None) is not None:
             listen = args.discovery_listen
@@ -582,10 +640,15 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         monitor = Monitor()
         # 1. plant or port
         if args.mode == "sim":
+            changes = [f"--change-at={c}" for c in args.change_at]
+            if args.change_file is not None:
+                changes.append(f"--change-file={Path(args.change_file).resolve()}")
             plant = kids.start("plant", [
                 script("dvt-plant"), "--link", str(logdir / "plant.tty"),
                 "--params", args.params, "--hidden", args.hidden, "--rate", f"{rate:g}",
-                "--seed", str(args.seed), "--truth-out", str(truth), *args.plant_arg])
+                "--seed", str(args.seed), "--truth-out", str(truth), *changes,
+                *args.plant_arg])
+            plant_pid["pid"] = plant.proc.pid
             port = kids.wait_until("the plant's READY line",
                                    lambda: _plant_link(plant.log), READY_TIMEOUT["plant"])
             say(f"plant ready on {port}")
@@ -604,8 +667,10 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         say("driver active, samples flowing")
         # 3. model node
         if not args.no_model:
+            # the model node's prior is the plant's parameter set unless --model-param names one
+            own_set = any(kv.split(":=", 1)[0].strip() == "params" for kv in args.model_param)
             kids.start("model", [script("dvt_model_node"), "--ros-args",
-                                 "-p", f"params:={args.params}",
+                                 *([] if own_set else ["-p", f"params:={args.params}"]),
                                  *_ros_params(args.model_param, "--model-param")])
             kids.wait_until("the model node's /dvt/model/joint_states",
                             lambda: (monitor is not None
@@ -637,9 +702,14 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
 
                 kids.wait_until("the experiment's command publishers", commands_published,
                                 READY_TIMEOUT["experiment"])
+        ring = args.ring_minutes is not None
         if record is not None:
+            # beside a ring, only the ring answers snapshot requests
+            remap = ["-r", f"{RECORDER_SNAPSHOT_REQUEST}:=/dvt/recorder/bag/snapshot",
+                     "-r", f"{RECORDER_SNAPSHOT_RESULT}:=/dvt/recorder/bag/snapshot_result"
+                     ] if ring else []
             kids.start("recorder", [
-                script("dvt-recorder"), "--ros-args", "-p", f"output:={record}",
+                script("dvt-recorder"), "--ros-args", *remap, "-p", f"output:={record}",
                 "-p", f"topics:=[{','.join(shlex.quote(t) for t in topics)}]",
                 "-p", f"compression:={args.compression}",
                 *_ros_params(args.record_param, "--record-param")])
@@ -652,6 +722,26 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                                 monitor.subscribed("dvt_recorder", t) for t in needed),
                             READY_TIMEOUT["recorder"])
             say(f"recording to {record}")
+        if ring:
+            ring_dir = Path(args.ring_dir).resolve() if args.ring_dir else logdir / "ring"
+            ring_topics = [*topics, *([] if MODEL_CHANGE in topics else [MODEL_CHANGE])]
+            kids.start("ring", [
+                script("dvt-recorder"), "--ros-args", "-r", f"__node:={RING_NODE}",
+                "-p", f"output:={ring_dir}",
+                "-p", f"topics:=[{','.join(shlex.quote(t) for t in ring_topics)}]",
+                "-p", f"compression:={args.compression}",
+                "-p", f"ring_minutes:={args.ring_minutes:g}",
+                "-p", f"ring_segment_seconds:={args.ring_segment_seconds:g}",
+                *_ros_params(args.record_param, "--record-param")])
+            ring_needed = [t for t in RECORDED_DVT_TOPICS
+                           if any(fnmatch.fnmatchcase(t, pat) for pat in ring_topics)
+                           and not (args.no_model and t in MODEL_TOPICS)]
+            kids.wait_until(f"the ring recorder's subscriptions on {ring_needed}",
+                            lambda: monitor is not None and all(
+                                monitor.subscribed(RING_NODE, t) for t in ring_needed),
+                            READY_TIMEOUT["ring"])
+            say(f"rolling recording of the last {args.ring_minutes:g} min in {ring_dir} "
+                f"(snapshots on {RECORDER_SNAPSHOT_REQUEST})")
         if args.foxglove:
             fox_args: list[str] = []
             if args.foxglove_port is not None:
@@ -704,6 +794,8 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         if monitor is not None:
             monitor.close()
         stop.restore()
+        if main_thread:
+            signal.signal(signal.SIGHUP, old_hup)
     if record is not None and record.exists():
         status = _finish_recording(args, record, truth, rate, started, statuses, exp_status,
                                    status, say)
@@ -731,6 +823,7 @@ def _finish_recording(args: argparse.Namespace, record: Path, truth: Path, rate:
         "params": args.params,
         "hidden": getattr(args, "hidden", None),
         "plant_seed": getattr(args, "seed", None),
+        "plant_changes": list(getattr(args, "change_at", [])),
         "experiment": None,
         "exit_status": {k: v for k, v in statuses.items()},
     }

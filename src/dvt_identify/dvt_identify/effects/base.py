@@ -313,6 +313,61 @@ class Effect:
         """
         return [float(v) for v in self.require_member()]
 
+    def time_constants(self, p: Array) -> tuple[float, ...]:
+        """Time constants [s] of the effect's own dynamics at ``p`` (the fit step must resolve
+        them, :func:`dvt_identify.fit.fit_decimation`); none by default."""
+        return ()
+
+    # -- admissibility -------------------------------------------------------------------
+    def inadmissible(self, p: Array) -> str | None:
+        """Why the fitted parameters ``p`` are not a physical instance of the effect, or
+        ``None`` when they are.
+
+        Every parameter's bounds are its physical constraint (friction, drag, play, delay
+        >= 0, ...): a value outside them (a fit that did not respect them) is inadmissible.
+        The effect's first parameter is the one that makes it present; at its null value on
+        a bound (friction 0, play 0, delay 0) the effect is absent: the other parameters
+        alone are not this effect (e.g. Coulomb friction 0 with only its offset left)."""
+        for spec, v in zip(self.params, p, strict=True):
+            val = float(v)
+            if not math.isfinite(val):
+                return f"{spec.name} = {val}: not a finite value"
+            scale = max(abs(spec.lower) if math.isfinite(spec.lower) else 0.0,
+                        abs(spec.upper) if math.isfinite(spec.upper) else 0.0,
+                        abs(spec.initial), 1e-12)
+            tol = 1e-9 * scale
+            if val < spec.lower - tol or val > spec.upper + tol:
+                return (f"{spec.name} = {val:.6g} {spec.unit}".rstrip()
+                        + f" violates its physical constraint {self._range(spec)}")
+        if self.params:
+            first = self.params[0]
+            val = float(p[0])
+            on_bound = first.null in (first.lower, first.upper)
+            if on_bound and abs(val - first.null) <= 1e-9 * max(abs(first.initial), 1.0) + 1e-12:
+                return (f"{first.name} = {val:.6g} sits at its physical limit {first.null:g}: "
+                        f"the {self.name} effect is absent")
+        return None
+
+    @staticmethod
+    def _range(spec: ParamSpec) -> str:
+        if math.isfinite(spec.lower) and math.isfinite(spec.upper):
+            return f"{spec.lower:g} <= {spec.name} <= {spec.upper:g}"
+        if math.isfinite(spec.lower):
+            return f"{spec.name} >= {spec.lower:g}"
+        if math.isfinite(spec.upper):
+            return f"{spec.name} <= {spec.upper:g}"
+        return "(none)"
+
+    def unavailable(self, segs: Sequence[SegmentView]) -> str | None:
+        """Why the effect cannot be built for these segments' rates (e.g. every contact
+        frequency of the scan is above the Nyquist frequency), or ``None``: the scorer then
+        skips it with this note."""
+        for seg in segs:
+            if not self.variants(seg):
+                return (f"{self.label()}: no variant can be built at {1.0 / seg.dt:g} Hz "
+                        "(its shapes are faster than the data can show)")
+        return None
+
     # -- scoring helpers -----------------------------------------------------------------
     def variants(self, seg: SegmentView) -> list[tuple[str, dict[str, float]]]:
         """Shape-parameter values the scorer tries: (label, {param name: value})."""

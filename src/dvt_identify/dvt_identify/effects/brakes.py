@@ -40,17 +40,16 @@ class BrakeEngagement(Effect):
         tau = float(p[0])
         if tau <= 0.0:
             return None
-        from scipy.signal import lfilter
+        from dvt_identify.simloop import first_order_lag
 
         e = math.exp(-dt / tau)
         out = u.copy()
-        col = u[:, self.index]
-        # u_eff[k+1] = e u_eff[k] + (1 - e) u[k], u_eff[0] = u[0]
-        zi = np.array([e * col[0]])
-        filt, _ = lfilter([0.0, 1.0 - e], [1.0, -e], col, zi=zi)
-        filt[0] = col[0]
-        out[:, self.index] = filt
+        # u_eff[k+1] = e u_eff[k] + (1 - e) u[k], u_eff[0] = u[0] (compiled recursion)
+        out[:, self.index] = first_order_lag(np.ascontiguousarray(u[:, self.index]), e)
         return out
+
+    def time_constants(self, p: Array) -> tuple[float, ...]:
+        return (float(p[0]),) if float(p[0]) > 0 else ()
 
 
 @dataclass

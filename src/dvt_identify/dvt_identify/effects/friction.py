@@ -53,6 +53,23 @@ class CoulombFriction(Effect):
             term["offset"] = float(p[1])
         return term
 
+    def inadmissible(self, p: Array) -> str | None:
+        """Besides the bounds (``Fc >= 0``): the friction in each direction, ``Fc + offset``
+        and ``Fc - offset``, must be >= 0 (an offset larger than ``Fc`` would be a friction
+        that pushes the member)."""
+        why = super().inadmissible(p)
+        if why is not None or len(p) < 2:
+            return why
+        fc, off = float(p[0]), float(p[1])
+        sfx = self.params[0].name[2:]
+        for label, v in ((f"Fc+{sfx}", fc + off), (f"Fc-{sfx}", fc - off)):
+            if v < -1e-9 * max(abs(fc), abs(off), 1e-12):
+                return (f"{label} = {self.params[0].name} "
+                        f"{'+' if label.startswith('Fc+') else '-'} {self.params[1].name} = "
+                        f"{v:.6g} < 0: the friction in each direction must be >= 0 "
+                        f"(|{self.params[1].name}| <= {self.params[0].name})")
+        return None
+
     def derived(self, values: dict[str, float]) -> dict[str, float]:
         if len(self.params) < 2:
             return {}

@@ -42,22 +42,27 @@ class MeasurementDelay(Effect):
         """One sample: the delay regressor is the secant to a one-sample shift."""
         return dt
 
-    def scan(self, y_sim: Array, y_meas: Array, dt: float, weight: float) -> list[dict[str, float]]:
-        """Delay scan: weighted SSE of output ``j`` for the simulated output shifted by 0..K
-        samples (K = max_delay / dt), without refitting."""
-        kmax = max(1, int(np.rint(float(self.params[0].upper) / dt)))
+    def scan(self, y_sim: Array, y_meas: Array, dt: float, weight: float,
+             step: float | None = None) -> list[dict[str, float]]:
+        """Delay scan: weighted SSE of output ``j`` for the simulated output shifted by
+        ``0, step, ..., K step`` seconds (``step`` default ``dt``, K = max_delay / step;
+        fractional samples interpolated), without refitting."""
+        h = dt if step is None else float(step)
+        kmax = max(1, int(np.rint(float(self.params[0].upper) / h)))
         out = []
         for k in range(0, kmax + 1):
-            shifted = self.output_transform(np.array([k * dt]), y_sim, dt)
+            shifted = self.output_transform(np.array([k * h]), y_sim, dt)
             ys = y_sim if shifted is None else shifted
             e = (y_meas[:, self.index] - ys[:, self.index]) / weight
-            out.append({"delay_s": k * dt, "sse": float(e @ e)})
+            out.append({"delay_s": k * h, "sse": float(e @ e)})
         return out
 
     def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
-        """The delay scan summed over the segments, its best delay [s] and the SSE reduction
+        """The delay scan summed over the segments (one delay grid, the finest segment's
+        sample time, for segments of any rate), its best delay [s] and the SSE reduction
         there [%]; the best delay is the refit's start when it is above 0."""
-        scan = [self.scan(yb, v.y, v.dt, float(ctx.weights[self.index]))
+        step = min(v.dt for v in ctx.views)
+        scan = [self.scan(yb, v.y, v.dt, float(ctx.weights[self.index]), step)
                 for v, yb in zip(ctx.views, ctx.simulated, strict=True)]
         tot = [{"delay_s": s0["delay_s"], "sse": sum(s[i]["sse"] for s in scan)}
                for i, s0 in enumerate(scan[0])]

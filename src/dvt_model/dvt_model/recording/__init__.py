@@ -13,7 +13,9 @@ types; see :mod:`~dvt_model.recording.layout`). Topic and joint names are the co
 * :mod:`~dvt_model.recording.pairing` - the one stamp pairing (:func:`pair_stamps` offline,
   :class:`LivePairer` live);
 * :mod:`~dvt_model.recording.recover` - :func:`recover` a killed recording, :func:`is_readable`;
-* :mod:`~dvt_model.recording.summary` - :func:`bag_summary` (``dvt-bag info``).
+* :mod:`~dvt_model.recording.summary` - :func:`bag_summary` (``dvt-bag info``);
+* :mod:`~dvt_model.recording.ring` - :class:`RollingRecorder` (the last N minutes in segments of
+  the one writer) and :func:`write_snapshot` (a window of it as a normal bag).
 
 Errors: :class:`~dvt_model.errors.BagError` (reading, contract violations) and its subclass
 :class:`~dvt_model.errors.RecordingError` (writing, recovering, summarising).
@@ -33,6 +35,7 @@ from dvt_model.recording.read import (
     sample_period,
 )
 from dvt_model.recording.recover import RecoverResult, is_readable, recover
+from dvt_model.recording.ring import RollingRecorder, SnapshotPlan, SnapshotResult, write_snapshot
 from dvt_model.recording.summary import BagSummary, TopicSummary, bag_summary
 from dvt_model.recording.write import (
     DEFAULT_FLUSH_PERIOD,
@@ -55,7 +58,10 @@ __all__ = [
     "Pairing",
     "RecordingError",
     "RecoverResult",
+    "RollingRecorder",
     "Run",
+    "SnapshotPlan",
+    "SnapshotResult",
     "Stream",
     "TopicSeries",
     "TopicSummary",
@@ -74,5 +80,6 @@ __all__ = [
     "typestore",
     "write_bag",
     "write_run",
+    "write_snapshot",
     "write_topics",
 ]

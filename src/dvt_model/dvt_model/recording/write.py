@@ -389,7 +389,8 @@ def _int_stamps(where: str, stamps_ns: ArrayLike) -> NDArray[np.int64]:
 def write_run(path: str | Path, stamps_ns: ArrayLike, speeds: ArrayLike, currents: ArrayLike,
               *, model_speeds: ArrayLike | None = None, residuals: ArrayLike | None = None,
               extra: Iterable[Stream] | None = None,
-              truth: Mapping[str, Any] | None = None) -> Path:
+              truth: Mapping[str, Any] | None = None,
+              positions: ArrayLike | None = None) -> Path:
     """Write one recording in the contract format; returns the bag directory.
 
     Args:
@@ -401,6 +402,8 @@ def write_run(path: str | Path, stamps_ns: ArrayLike, speeds: ArrayLike, current
         residuals: optional (N, 2) measured minus predicted [rad/s] -> ``/dvt/model/residual``.
         extra: further streams ``(topic, msgtype, [(log_time_ns, msg or raw CDR), ...])``.
         truth: if given, written as ``truth.yaml`` inside the bag directory (simulation only).
+        positions: optional (N, 2) measured angles [rad] of ``SPEED_NAMES``, written as
+            ``position`` of ``/dvt/joint_states`` (docs/interface.md); ``None``: empty.
 
     Values are written as given (no finiteness or order check) so that tests can build bad bags.
     """
@@ -411,9 +414,13 @@ def write_run(path: str | Path, stamps_ns: ArrayLike, speeds: ArrayLike, current
     _check_shape("speeds", spd, (n, len(SPEED_NAMES)))
     _check_shape("currents", cur, (n, len(CURRENT_NAMES)))
     stamp_list = [int(s) for s in stamps]
+    pos = None if positions is None else np.asarray(positions, dtype=np.float64)
+    if pos is not None:
+        _check_shape("positions", pos, (n, len(SPEED_NAMES)))
     streams: list[Stream] = [
         (JOINT_STATES, JOINT_STATE_TYPE,
-         [(s, joint_state_cdr(s, SPEED_NAMES, velocity=spd[i]))
+         [(s, joint_state_cdr(s, SPEED_NAMES, velocity=spd[i],
+                              position=None if pos is None else pos[i]))
           for i, s in enumerate(stamp_list)]),
         (CURRENTS, JOINT_STATE_TYPE,
          [(s, joint_state_cdr(s, CURRENT_NAMES, effort=cur[i]))

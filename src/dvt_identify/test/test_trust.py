@@ -1,0 +1,174 @@
+"""A fit you can trust: honest standard deviations, an acceptance test that scales with the noise,
+drift reported as drift, and residual remarks calibrated against the sensor noise.
+
+Synthetic one-mass data (M = 10 kg, Fv = 20 N s/m, velocity output) from the model itself, so the
+truth is known exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from scipy import signal
+
+from dvt_identify.data import Segment, make_segment
+from dvt_identify.description import Description, parse_description
+from dvt_identify.effects import make_effect
+from dvt_identify.fit import OEFit
+from dvt_identify.loop import LoopConfig, identify
+from dvt_identify.metrics import parameter_std
+from dvt_identify.report import build_report, remaining_summary
+from dvt_identify.simulation import OEModel
+
+DT = 0.004
+
+
+def description() -> Description:
+    """One mass with viscous damping; the usual candidates."""
+    sig = {"topic": "/s/joint_states", "field": "velocity", "joint": "x"}
+    data: dict[str, Any] = {
+        "name": "synthetic",
+        "inputs": [{"name": "force", "topic": "/s/drive", "field": "effort", "joint": "x"}],
+        "outputs": [{"name": "v", **sig}],
+        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
+                      "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
+                      "parameters": {"M": {"initial": 5.0, "lower": 0.001},
+                                     "Fv": {"initial": 10.0, "lower": 0.0}}},
+        "candidates": [
+            {"effect": "coulomb_friction", "where": "v", "offset": True},
+            {"effect": "stribeck_friction", "where": "v"},
+            {"effect": "windage", "where": "v"},
+            {"effect": "measurement_delay", "where": "v", "max_delay": 0.02},
+            {"effect": "sensor_gain", "where": "v"},
+        ],
+        "fit": {"starts": 2, "refit_starts": 1, "max_effects": 3},
+    }
+    return parse_description(data, "test")
+
+
+def _force(seed: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * DT
+    sos = signal.butter(2, 3.0, fs=1 / DT, output="sos")
+    return np.asarray(30 * np.sin(2 * np.pi * 0.7 * t + seed) + 15 * np.sin(2 * np.pi * 2.3 * t)
+                      + 60 * signal.sosfilt(sos, rng.normal(size=n)))
+
+
+def _noise(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
+    """AR(1) noise of unit variance with lag-1 correlation ``rho``."""
+    e = signal.lfilter([np.sqrt(1 - rho**2)], [1.0, -rho], rng.normal(size=n))
+    return np.asarray(e)
+
+
+def _segment(seed: int, n: int, fv: np.ndarray | float = 20.0, cw: float = 0.0,
+             noise: float = 0.01, rho: float = 0.0) -> Segment:
+    """Simulated segment; ``fv`` may vary per sample (drift, simulated in 50-sample pieces with
+    the state carried); windage ``-cw |v| v``; output noise ``noise * std(y)``, AR(1) ``rho``."""
+    rng = np.random.default_rng(seed + 1000)
+    t = np.arange(n) * DT
+    f = _force(seed, n)
+    desc = description()
+    effects = [make_effect("windage", "v", ["v"], ["force"])] if cw else []
+    model = OEModel(desc.structure, effects)
+    fvs = np.broadcast_to(np.asarray(fv, float), (n,))
+    y = np.zeros((n, 1))
+    x = np.array([0.2])
+    for a in range(0, n, 50):
+        b = min(a + 51, n)
+        theta = np.array([10.0, float(fvs[a])] + ([cw] if cw else []))
+        piece = make_segment("p", t[a:b], f[a:b], np.zeros(b - a), ["force"], ["v"])
+        xs = model.simulate(theta, piece, x)
+        y[a:min(a + 50, n)] = xs[: min(50, n - a)]
+        x = xs[-1]
+    y = y + noise * float(np.std(y)) * _noise(rng, n, rho)[:, None]
+    return make_segment(f"seg{seed}", t, f, y[:, 0], ["force"], ["v"])
+
+
+def test_sandwich_std_is_larger_than_naive_on_coloured_noise() -> None:
+    """Output noise AR(1) with rho = 0.9: the white-noise figure understates the spread by
+    about sqrt((1 + rho) / (1 - rho)) ~ 4 for slowly varying sensitivities."""
+    seg = _segment(1, 6000, noise=0.02, rho=0.9)
+    desc = description()
+    fit = OEFit(OEModel(desc.structure, ()), starts=1).fit([seg])
+    naive = parameter_std(fit.jac_, fit.residual_)[:2]
+    sandwich = fit.std_[:2]
+    ratio = sandwich / naive
+    print(f"sandwich / naive std: M {ratio[0]:.2f}, Fv {ratio[1]:.2f}")
+    assert np.all(ratio > 2.0), ratio
+    # and the sandwich figure covers the real error of these estimates (3 sigma)
+    err = np.abs(fit.theta_[:2] - np.array([10.0, 20.0]))
+    assert np.all(err < 3 * sandwich), (err, sandwich)
+
+
+def test_small_real_effect_accepted_by_the_validation_test() -> None:
+    """A windage that moves the validation fit by a few hundredths of a point: the fixed
+    0.1-point rule rejected it, the Diebold-Mariano test accepts it (LR and BIC pass)."""
+    desc = replace(description(), candidates=tuple(
+        c for c in description().candidates if c.effect in ("windage", "coulomb_friction")))
+    est = [_segment(1, 8000, cw=0.25, noise=0.005)]
+    val = [_segment(2, 8000, cw=0.25, noise=0.005)]
+    cfg = replace(LoopConfig.from_options(desc.fit), max_effects=1, drift_windows=0)
+    res = identify(est, val, desc, cfg)
+    wind = [d for d in res.decisions if d.score.effect.name == "windage"]
+    assert wind, [d.score.label for d in res.decisions]
+    d = wind[0]
+    gain = d.val_fit_after - d.val_fit_before
+    assert d.validation is not None
+    print(f"windage: validation gain {gain:+.4f} points, DM {d.validation.stat:.2f}, "
+          f"p = {d.validation.p_value:.2g}, LR {d.lr:.1f}")
+    assert 0.0 < gain < 0.1, gain  # what the old rule rejected
+    assert d.accepted, d.reason
+    assert d.lr > d.lr_threshold and d.delta_bic < 0
+    ev = d.as_dict()["validation_test"]
+    assert isinstance(ev, dict) and {"statistic", "p_value", "loss_reduction_relative"} <= set(ev)
+    # the old fixed 0.1-point rule rejects the same effect
+    old = identify(est, val, desc, replace(cfg, min_validation_gain=0.1))
+    assert old.accepted == []
+
+
+def test_clean_data_accepts_nothing_and_reads_clean() -> None:
+    """Correct structure, sensor noise only (lightly coloured, rho = 0.3): nothing accepted,
+    no drift, and no 'coloured' remark."""
+    desc = description()
+    est = [_segment(3, 5000, noise=0.01, rho=0.3)]
+    val = [_segment(4, 5000, noise=0.01, rho=0.3)]
+    res = identify(est, val, desc, LoopConfig.from_options(desc.fit))
+    assert res.accepted == []
+    assert res.drift is not None and res.drift.drifting == []
+    text = " ".join(remaining_summary(res))
+    print(text)
+    assert "coloured" not in text
+    assert "has a peak" not in text
+    rep = build_report(res)
+    assert not [w for w in rep["warnings"] if "drift" in w]
+    share = rep["baseline"]["residual_noise_floor"]["v"]["structured_share"]
+    assert share < 0.5
+    # the data warnings of loading are carried into the report, messages unchanged
+    res.data_warnings = ["est.bag: /s/joint_states: 3 samples with a non-increasing stamp "
+                         "dropped"]
+    rep = build_report(res)
+    assert rep["warnings"][0] == "data: " + res.data_warnings[0]
+    assert rep["baseline"]["parameter_relative_std"]["Fv"] < 0.01
+
+
+def test_falling_damping_is_reported_as_drift_not_static_effects() -> None:
+    """Fv falls 35 % over 40 s: the drift check names it; the loop accepts no static effect."""
+    n = 10000  # 40 s
+    fv = 20.0 * (1.0 - 0.35 * np.arange(n) / n)
+    desc = description()
+    est = [_segment(5, n, fv=fv)]
+    val = [_segment(6, n, fv=fv)]
+    res = identify(est, val, desc, LoopConfig.from_options(desc.fit))
+    assert res.drift is not None
+    names = [p.name for p in res.drift.drifting]
+    print(res.drift.summary())
+    assert names == ["Fv"], res.drift.summary()
+    fvd = res.drift.drifting[0]
+    assert fvd.change < 0 and 0.2 < -fvd.change < 0.5, fvd.statement()
+    assert "Fv falls" in fvd.statement()
+    assert res.accepted == []
+    rep = build_report(res)
+    assert any(w.startswith("drift: Fv falls") for w in rep["warnings"]), rep["warnings"]
+    assert any("augment loop not run" in n for n in rep["notes"])
