@@ -28,6 +28,12 @@ from dvt_model.recording import read_run, sample_period
     (["sim", "--driver-param", "baud"], "--driver-param: expected NAME:=VALUE, got 'baud'"),
     (["sim", "--rate", "0"], "--rate: expected 0 < HZ <= 2000, got 0.0"),
     (["hw"], "the following arguments are required: --port"),
+    (["sim", "--ring-minutes", "0"], "--ring-minutes: expected 0 < M <= 1440, got 0.0"),
+    (["sim", "--ring-dir", "/tmp/x"], "--ring-dir needs --ring-minutes"),
+    (["sim", "--ring-minutes", "1", "--ring-segment-seconds", "90"],
+     "--ring-segment-seconds: expected 0 < S <= ring minutes * 60, got 90.0"),
+    (["sim", "--change-at", "soon:coulomb"], "--change-at: expected T:SPEC"),
+    (["sim", "--change-at", "5:nope"], "unknown hidden-effects preset 'nope'"),
 ])
 def test_launch_refuses_bad_arguments(args: list[str], message: str,
                                       capsys: pytest.CaptureFixture[str]) -> None:
@@ -138,3 +144,34 @@ def test_sigint_mid_run_stops_every_child_and_closes_the_bag(procs: Procs,
     assert (bag / "truth.yaml").exists()
     exp_log = (tmp_path / "logs" / "experiment.log").read_text()
     assert "interrupted: stopping the motor" in exp_log and "motor stopped" in exp_log
+
+
+@pytest.mark.ros
+def test_launch_with_a_plant_change_and_a_ring(procs: Procs, tmp_path: Path) -> None:
+    """``--change-at`` reaches the plant (its truth, copied into the bag, holds the change with
+    its times) and ``--ring-minutes`` starts a rolling recorder beside the normal one."""
+    bag, ring = tmp_path / "run", tmp_path / "ring"
+    launcher = procs.start("dvt-launch", "sim", "--seed", "2", "--change-at", "3:coulomb",
+                           "--record", str(bag), "--ring-minutes", "1",
+                           "--ring-segment-seconds", "2", "--ring-dir", str(ring),
+                           "--duration", "8", "--log-dir", str(tmp_path / "logs"))
+    try:
+        rc = launcher.wait(timeout=80)
+    except subprocess.TimeoutExpired:
+        pytest.fail("dvt-launch did not finish within 80 s:\n" + procs.log(launcher)[-3000:])
+    log = procs.log(launcher)
+    assert rc == 0, log[-3000:]
+    pids = _pids(log)
+    assert set(pids) == {"plant", "driver", "model", "recorder", "ring"}
+    for name, pid in pids.items():
+        assert _gone(pid), f"{name} (pid {pid}) still running"
+    truth = yaml.safe_load((bag / "truth.yaml").read_text())
+    (applied,) = truth["changes_applied"]
+    assert applied["at_s"] == pytest.approx(3.0, abs=0.002)
+    assert applied["change"]["coulomb"] == {"sun": 0.05, "carrier3": 0.2}
+    assert applied["unix_s"] > 1.6e9
+    assert yaml.safe_load((bag / "run.yaml").read_text())["plant_changes"] == ["3:coulomb"]
+    segments = sorted(ring.glob("seg-*"))
+    assert len(segments) >= 2, list(ring.iterdir())
+    ring_log = (tmp_path / "logs" / "ring.log").read_text()
+    assert "rolling" in ring_log, ring_log[-2000:]

@@ -386,3 +386,40 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
     assert worst[0] < 8.0 and worst[1] < 1.2, (typical, worst)
     # the model that does not know the arm misses its gravity: far larger residuals
     assert typical_bare[1] > 3.0 * typical[1], (typical, typical_bare)
+
+
+def test_change_detector_wiring(procs, rclpy_context, tmp_path):
+    """The detector runs on the replayed residual (status in /diagnostics), its parameters are
+    read-only, a model change resets it, and invalid detector settings refuse the start."""
+    from dvt_model.node import DETECTOR_STATUS
+
+    bad = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=0.2")
+    wait_for(lambda: bad.poll() is not None, 30.0, "the refused start")
+    assert bad.returncode == 2
+    assert "detector.learn_s: expected at least 100 samples" in procs.log(bad)
+    assert "0.2" in procs.log(bad)
+
+    bag = _simulated_bag(tmp_path / "run", seconds=3.0)
+    listener = _Listener(rclpy_context)
+    statuses: list[dict[str, str]] = []
+    listener.node.create_subscription(
+        DiagnosticArray, rosutil.DIAGNOSTICS,
+        lambda m: statuses.extend({kv.key: kv.value for kv in st.values}
+                                  for st in m.status if st.name == DETECTOR_STATUS), 50)
+    node = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=1.0",
+                       "-p", "detector.settle_s:=0.2")
+    listener.spin_until(lambda: listener.node.count_publishers(rosutil.MODEL_RESIDUAL) > 0,
+                        20.0, "model node publishers")
+    replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")
+    listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")
+    listener.spin_until(lambda: statuses and int(statuses[-1].get("tested", "0")) > 0, 15.0,
+                        "the detector testing the replayed residual")
+    last = statuses[-1]
+    assert last["state"] == "testing" and last["alarms"] == "0", last
+    assert last["anchor_restarts"] == "1" and last["resets"] == "0", last
+    refused = listener.set_param("detector.learn_s", 30.0)
+    assert not refused.successful and refused.reason.startswith("detector.learn_s: read-only")
+    assert listener.set_param("params", "thesis").successful
+    listener.spin_until(lambda: statuses[-1].get("resets") == "1", 5.0, "a detector reset")
+    assert statuses[-1]["state"] in ("learning", "settling"), statuses[-1]
+    assert node.poll() is None

@@ -23,8 +23,9 @@ from dvt_driver.plant.hidden import (
 )
 from dvt_model.brake import capacity_step
 
-PRESETS = ["backlash", "coulomb", "delay", "gravity_arm", "mesh_ripple", "none",
-           "position_friction", "stribeck", "wet_brake", "windage"]
+PRESETS = ["backlash", "coulomb", "delay", "friction_step", "gravity_arm", "mesh_ripple",
+           "none", "oil_warmup", "payload_added", "position_friction", "stribeck", "wear",
+           "wet_brake", "windage"]
 
 
 def test_presets_are_bundled_and_valid() -> None:
@@ -33,7 +34,11 @@ def test_presets_are_bundled_and_valid() -> None:
                 "stribeck": ["stribeck_friction"], "windage": ["windage"],
                 "backlash": ["backlash"], "delay": ["measurement_delay"],
                 "wet_brake": ["brake_engagement"], "gravity_arm": ["gravity_load"],
-                "mesh_ripple": ["mesh_ripple"], "position_friction": ["position_friction"]}
+                "mesh_ripple": ["mesh_ripple"], "position_friction": ["position_friction"],
+                # changing plants (test_plant_changes.py)
+                "friction_step": ["plant_changes"], "oil_warmup": ["plant_changes"],
+                "payload_added": ["plant_changes"],
+                "wear": ["coulomb_friction", "plant_changes"]}
     for name in PRESETS:
         h = load_hidden(name)
         assert h.effect_names() == expected[name], name

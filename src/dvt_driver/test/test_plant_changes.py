@@ -112,7 +112,7 @@ def test_plant_applies_a_friction_step_at_its_time() -> None:
     truth = yaml.safe_load(sim.truth_yaml())
     assert truth["changes_applied"] == sim.changes_applied
     assert truth["hidden"]["changes"][0]["at"] == 3.0
-    assert "changes" in truth["effects"]
+    assert "plant_changes" in truth["effects"]
 
 
 def test_ramp_damping_and_runtime_change() -> None:

@@ -2,11 +2,12 @@
 
     dvt-bench model    --rate 1000 --seconds 10 --json   (model node fed at 1 kHz)
     dvt-bench link     --rate 1000 --seconds 30 --json   (plant -> driver -> recorder)
+    dvt-bench loop     --json                            (change detection on the live chain)
     dvt-bench identify [--monte-carlo N] --json          (identifier speed / statistics)
 
 Each target is a module with ``main(argv) -> int``, imported by name when asked for: ``link``
-is the driver package's benchmark (it needs the plant), which this package does not depend
-on; without ``dvt_driver`` installed that target alone is unavailable.
+and ``loop`` are the driver package's benchmarks (they need the plant), which this package does
+not depend on; without ``dvt_driver`` installed those targets alone are unavailable.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import sys
 _TARGETS = {
     "model": "dvt_model.bench",
     "link": "dvt_driver.run.bench",
+    "loop": "dvt_driver.run.bench_loop",
     "identify": "dvt_identify.bench_identify",
 }
 

@@ -1,13 +1,18 @@
 """``dvt-identify``: fit, trace and report from bags.
 
     dvt-identify BAG... --validate BAG... --out DIR [--description FILE_OR_NAME] [--no-augment]
+                 [--test BAG...] [--select-on validation|holdout] [--init-window N] [--mcap]
     dvt-identify BAG... --check [--out DIR] [--description FILE_OR_NAME]
 
 Runs the identification pipeline (:func:`dvt_identify.pipeline.run`): reads the estimation and
 validation bags named by the actuator description (default ``dvt``), checks and pre-processes
 them, fits the baseline output-error model, runs the augment loop and writes
-``DIR/report.json``, ``DIR/report.md`` and PNG plots. Progress goes to stderr; the last line on
-stdout summarises the result.
+``DIR/report.json``, ``DIR/report.md``, PNG plots and the series (``DIR/series.npz``,
+``DIR/series/*.csv``, with ``--mcap`` bags; :mod:`dvt_identify.series`). The validation bags
+choose the effects (a selection figure); ``--test`` bags are read after every choice and give
+a figure that took no part in any (``--select-on holdout`` chooses on the held-out end of the
+estimation bags instead and treats the validation bags as test data). Progress goes to
+stderr; the last line on stdout summarises the result.
 
 Exit status (as ``dvt-bag``): 0 success; 1 bad data or files (a bag that cannot be read or
 checked, a bad description, a failed fit), with one line ``dvt-identify: error: <reason>`` on
@@ -99,16 +104,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--no-plots", action="store_true",
                     help="write report.json and report.md only (no PNG plots; faster)")
     ap.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    ap.add_argument("--test", nargs="+", metavar="BAG", default=[],
+                    help="test bag directories: read only after every choice is made; their "
+                         "figures took no part in fitting or choosing effects")
+    ap.add_argument("--select-on", choices=("validation", "holdout"), default="validation",
+                    help="data that choose the effects: the validation bags (default), or the "
+                         "held-out last 30 %% of each estimation bag (the --validate bags are "
+                         "then test data)")
+    ap.add_argument("--init-window", type=int, default=0, metavar="N",
+                    help="test initial states from the first N samples only (benchmark "
+                         "style; figures on the rest)")
+    ap.add_argument("--mcap", action="store_true",
+                    help="also write the series as MCAP bags with the model topics (Foxglove)")
     args = ap.parse_args(argv)
-    if not args.check and (not args.validate or not args.out):
-        ap.error("--validate and --out are required (unless --check)")
+    if not args.check and (not args.out or (not args.validate
+                                            and args.select_on != "holdout")):
+        ap.error("--validate and --out are required (unless --check; --validate is optional "
+                 "with --select-on holdout)")
     try:
         if args.check:
             return _check(args)
-        result = run(args.bags, args.validate, args.out, args.description,
+        result = run(args.bags, args.validate or [], args.out, args.description,
                      augment=not args.no_augment, starts=args.starts,
                      fit_decimate=args.fit_decimate, quiet=args.quiet,
-                     plots=not args.no_plots)
+                     plots=not args.no_plots, test_bags=args.test,
+                     select_on=args.select_on, init_window=args.init_window, mcap=args.mcap)
     except (DvtIdentifyError, OSError) as exc:
         print(f"dvt-identify: error: {error_line(exc)}", file=sys.stderr)
         return EXIT_DATA
@@ -118,7 +138,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(fin.val.output_names,
                                                           result.baseline.val.fit_percent,
                                                           fin.val.fit_percent, strict=True))
-          + f"; accepted: {', '.join(acc)}")
+          + f"; accepted: {', '.join(acc)}"
+          + ("" if result.test is None else "; test fit (no part in any choice): " + ", ".join(
+              f"{n} {f:.2f} %" for n, f in zip(result.test.final.output_names,
+                                               result.test.final.fit_percent, strict=True))))
     return 0
 
 

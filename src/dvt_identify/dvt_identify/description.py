@@ -34,7 +34,26 @@ Structure types:
   ``Class(state_names=..., input_names=..., **options)`` and must satisfy
   :class:`dvt_identify.structures.ModelStructure`.
 
-The states are the outputs, in order (C = I). ``load_description`` takes a file path or the name of
+- ``mechanical`` with ``stiffness`` (and/or ``members``): members joined by springs, with
+  hidden states (:class:`dvt_identify.structures.SpringMechanicalStructure`)::
+
+      structure:
+        type: mechanical
+        members: [motor, load]          # states: motor_angle, load_angle, motor, load
+        mass: [[Jm, 0], [0, Jl]]
+        damping: [["c + dm", "-c"], ["-c", "c + dl"]]   # entries may be sums
+        stiffness: [[k, "-k"], ["-k", k]]              # a shaft between the two members
+        input_matrix: [[1.0], [0.0]]
+        outputs: {w_load: load}         # measured output -> state (a speed or <member>_angle)
+
+  ``A = [[0, I], [-M^-1 K, -M^-1 D]]``; ``y = C x`` with ``C`` selecting the measured states;
+  every initial state (hidden ones included) is estimated. Force effects act on member speeds
+  (``where: load``); output effects (sensor maps, delay, gain) on measured outputs
+  (``where: w_load``).
+
+Otherwise the states are the outputs, in order (C = I). Parameter names must be unique over
+the structure, the model effects and the candidates; a clash is refused on loading, with the
+names. ``load_description`` takes a file path or the name of
 a bundled description (``descriptions/<name>.yaml``); the default name is ``dvt``.
 """
 
@@ -52,7 +71,12 @@ import yaml
 from dvt_identify.data import Checks, SignalSpec
 from dvt_identify.effects import VOCABULARY, Effect, make_effect
 from dvt_identify.errors import DescriptionError
-from dvt_identify.structures import MechanicalStructure, ModelStructure, StateSpaceStructure
+from dvt_identify.structures import (
+    MechanicalStructure,
+    ModelStructure,
+    SpringMechanicalStructure,
+    StateSpaceStructure,
+)
 
 DEFAULT_DESCRIPTION = "dvt"
 
@@ -122,8 +146,35 @@ class Description:
 
     @property
     def output_names(self) -> tuple[str, ...]:
-        """Output (state) names in order."""
+        """Output names in order (the states, unless the structure has hidden states)."""
         return tuple(s.name for s in self.outputs)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """The structure's state names (= the outputs unless it has hidden states)."""
+        return tuple(self.structure.state_names)
+
+    def check_parameter_names(self) -> None:
+        """Refuse parameter names that clash: the structure's with a model effect's or a
+        candidate's, a model effect's with another's, a candidate's with another candidate's
+        (every candidate may join the model together).
+
+        Raises:
+            DescriptionError: naming the file, the clashing names and who owns them.
+        """
+        owners: dict[str, list[str]] = {}
+        for p in self.structure.params:
+            owners.setdefault(p.name, []).append("structure")
+        for e in [*self.make_model_effects(), *self.make_candidates()]:
+            for p in e.params:
+                owners.setdefault(p.name, []).append(e.label())
+        dup = {n: o for n, o in owners.items() if len(o) > 1}
+        if dup:
+            raise DescriptionError(f"{self.source}: duplicate parameter names: "
+                                   + "; ".join(f"{n} ({', '.join(o)})"
+                                               for n, o in sorted(dup.items()))
+                                   + " (rename the structure's parameter or use the effect's "
+                                     "suffix)")
 
     def make_candidates(self) -> list[Effect]:
         """Build the candidate effects (parameter names get ``_<where>`` when an effect appears
@@ -143,17 +194,18 @@ class Description:
         out = []
         for c in specs:
             suffix = f"_{c.where}" if always or counts[c.effect] > 1 else ""
-            probe = make_effect(c.effect, c.where, self.output_names, self.input_names,
+            states, outs = self.state_names, self.output_names
+            probe = make_effect(c.effect, c.where, states, self.input_names,
                                 member=c.member,
                                 options={k: v for k, v in c.options.items() if k != "initial"},
-                                suffix=suffix)
+                                suffix=suffix, output_names=outs)
             if any(p.name in taken for p in probe.params):
                 suffix += "_add"
             opts = {k: v for k, v in c.options.items() if k != "initial"}
-            eff = make_effect(c.effect, c.where, self.output_names, self.input_names,
+            eff = make_effect(c.effect, c.where, states, self.input_names,
                               force_unit=self.structure.force_unit,
                               speed_unit=self.structure.speed_unit,
-                              member=c.member, options=opts, suffix=suffix)
+                              member=c.member, options=opts, suffix=suffix, output_names=outs)
             init = c.options.get("initial")
             if init is not None:
                 if not isinstance(init, dict):
@@ -247,6 +299,20 @@ def _structure(raw: Any, states: tuple[str, ...], inputs: tuple[str, ...],
     if kind == "state_space":
         return StateSpaceStructure(states, inputs, _req(raw, "A", where), _req(raw, "B", where),
                                    params, raw.get("force_map"), fu, su, what=where)
+    if kind == "mechanical" and ("stiffness" in raw or "members" in raw):
+        members = raw.get("members", list(states))
+        outs = raw.get("outputs")
+        if not isinstance(members, list):
+            raise DescriptionError(f"{where}.members: expected a list of names, got {members!r}")
+        if outs is not None and not isinstance(outs, dict):
+            raise DescriptionError(f"{where}.outputs: expected a mapping output -> state, "
+                                   f"got {outs!r}")
+        n = len(members)
+        stiff = raw.get("stiffness", [[0.0] * n for _ in range(n)])
+        return SpringMechanicalStructure(members, states, inputs, _req(raw, "mass", where),
+                                         _req(raw, "damping", where), stiff,
+                                         _req(raw, "input_matrix", where), params, outs, fu,
+                                         su, str(raw.get("angle_unit", "")), what=where)
     if kind == "mechanical":
         return MechanicalStructure(states, inputs, _req(raw, "mass", where),
                                    _req(raw, "damping", where), _req(raw, "input_matrix", where),
@@ -308,8 +374,9 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
     states = tuple(s.name for s in outputs)
     structure = _structure(_req(data, "structure", source), states,
                            tuple(s.name for s in inputs), f"{source}: structure")
-    cands = _candidates(data.get("candidates"), states, f"{source}: candidates")
-    model_fx = _candidates(data.get("model_effects"), states, f"{source}: model_effects")
+    xs = tuple(structure.state_names)
+    cands = _candidates(data.get("candidates"), xs, f"{source}: candidates")
+    model_fx = _candidates(data.get("model_effects"), xs, f"{source}: model_effects")
     pre = data.get("preprocess") or {}
     chk = data.get("checks") or {}
     fit = data.get("fit") or {}
@@ -327,6 +394,7 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
                        model_effects=model_fx)
     desc.make_candidates()  # validate names and options now
     desc.make_model_effects()
+    desc.check_parameter_names()
     return desc
 
 

@@ -143,9 +143,13 @@ def _simulate_windows(fit: OEFit, i: int, values: Array, seg: Segment, x0: Array
         th[i] = values[k]
         piece = replace(seg, t=seg.t[a:stop], u=seg.u[a:stop], y=seg.y[a:stop])
         with np.errstate(all="ignore"):
-            xs = m.simulate(th, piece, x)
+            if m.C is None:
+                xs = m.simulate(th, piece, x)
+                states = xs
+            else:  # hidden states: carry the states, not the outputs
+                states, xs = m.simulate_states(th, piece, x)
         out.append(xs[: b - a])
-        x = xs[-1]
+        x = states[-1]
     return np.vstack(out)
 
 
@@ -179,7 +183,7 @@ def _refit_one(fit: OEFit, i: int, segs: Sequence[Segment], windows: int
         return np.full(windows, v0), np.full(windows, np.inf)
     r = least_squares(fun, z0, bounds=(zlo, zhi), x_scale="jac", method="trf",
                       ftol=1e-8, xtol=1e-8, gtol=1e-8)
-    cov = sandwich_covariance(r.jac, r.fun, nx, [s.n for s in segs])
+    cov = sandwich_covariance(r.jac, r.fun, m.ny, [s.n for s in segs])
     return np.asarray(r.x[:windows], float), np.asarray(cov.std[:windows], float)
 
 

@@ -36,7 +36,7 @@ from dvt_identify.data import Segment
 from dvt_identify.effects import BrakeEngagement, BrakeLockup
 from dvt_identify.errors import FitError
 from dvt_identify.simulation import OEModel, zoh_decimate
-from dvt_identify.structures import PENALTY
+from dvt_identify.structures import PENALTY, initial_state
 from dvt_identify.uncertainty import sandwich_covariance
 
 Array = NDArray[np.float64]
@@ -158,8 +158,11 @@ def _engagement_windows(segments: Sequence[Segment], j: int, pre: float = 0.05,
     return out
 
 
-def _x0_guess(seg: Segment) -> Array:
-    return np.asarray(seg.y[: min(3, seg.n)].mean(axis=0), dtype=float)
+def _x0_guess(seg: Segment, model: OEModel | None = None) -> Array:
+    """Initial-state start (nx,): the mean of the first 3 outputs, mapped to the states by the
+    structure when it has hidden states (:func:`~dvt_identify.structures.initial_state`)."""
+    y0 = np.asarray(seg.y[: min(3, seg.n)].mean(axis=0), dtype=float)
+    return y0 if model is None else initial_state(model.structure, y0)
 
 
 def _clean(r: Array) -> Array:
@@ -451,9 +454,9 @@ class OEFit:
         if not segments:
             raise FitError("no estimation segments")
         for seg in segments:
-            if seg.output_names != st.state_names:
+            if seg.output_names != self.model.output_names:
                 raise FitError(f"{seg.name}: outputs {list(seg.output_names)} do not match the "
-                               f"structure's states {list(st.state_names)}")
+                               f"structure's outputs {list(self.model.output_names)}")
             if seg.input_names != st.input_names:
                 raise FitError(f"{seg.name}: inputs {list(seg.input_names)} do not match the "
                                f"structure's inputs {list(st.input_names)}")
@@ -494,7 +497,7 @@ class OEFit:
             # the first start runs to convergence: take the guess or extra start that
             # simulates best from where it is (one simulation each; measured: an
             # equation-error guess across lock-ups can be far off and cost 800 evaluations)
-            x0s = [_x0_guess(sg) for sg in segments]
+            x0s = [_x0_guess(sg, self.model) for sg in segments]
             w = self.weights_
 
             def cost(th: Array) -> float:
@@ -590,7 +593,8 @@ class OEFit:
                      wins: list[Segment] = wins) -> float:
                 t2 = base.copy()
                 t2[gi], t2[ti] = g, tau
-                r = self._residual(t2, wins, [wn.y[0] for wn in wins], w)
+                x0w = [initial_state(m.structure, wn.y[0]) for wn in wins]
+                r = self._residual(t2, wins, x0w, w)
                 return float(r @ r)
             g0 = float(th[gi]) if th[gi] > 0 else 1.0
             t_best = float(th[ti]) if th[ti] > 0 else 0.02
@@ -637,7 +641,7 @@ class OEFit:
         (cost ``ref``). Returns the result, its note, whether a screened start reached the
         first's minimum and whether its residual and Jacobian are the full data's."""
         z0 = np.clip(np.concatenate([st[self.model.free],
-                                     *[_x0_guess(s) for s in problem.segments]]),
+                                     *[_x0_guess(s, self.model) for s in problem.segments]]),
                      problem.zlo, problem.zhi)
         if i == 0:
             return self._solve(problem, st, z0, self.max_nfev, problem.segments), "", None, True
@@ -703,7 +707,7 @@ class OEFit:
 
         def fun(x0: Array) -> Array:
             return self._residual(th, [part], [x0], w)
-        r = least_squares(fun, _x0_guess(seg), method="trf", x_scale="jac")
+        r = least_squares(fun, _x0_guess(seg, self.model), method="trf", x_scale="jac")
         return np.asarray(r.x, float)
 
     def predict(self, seg: Segment, x0: Array | None = None) -> Array:

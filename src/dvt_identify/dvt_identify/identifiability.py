@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from dvt_identify.data import Segment, _constant, decimate
 from dvt_identify.description import Description
 from dvt_identify.simulation import OEModel
+from dvt_identify.structures import initial_state
 from dvt_identify.uncertainty import noise_floor
 
 Array = NDArray[np.float64]
@@ -208,14 +209,15 @@ def _unused_input(name: str, cols: Sequence[Array], desc: Description) -> str:
     return ""
 
 
-def _x0s(segs: Sequence[Segment]) -> list[Array]:
-    return [np.asarray(s.y[: min(3, s.n)].mean(axis=0), float) for s in segs]
+def _x0s(segs: Sequence[Segment], model: OEModel | None = None) -> list[Array]:
+    y0s = [np.asarray(s.y[: min(3, s.n)].mean(axis=0), float) for s in segs]
+    return y0s if model is None else [initial_state(model.structure, y) for y in y0s]
 
 
 def _sensitivities(model: OEModel, theta: Array, segs: Sequence[Segment], w: Array,
                    rel_step: float = 1e-3) -> Array:
     """Columns: d(yhat/w)/d(log theta_i) for every parameter, then d/dx0 per segment."""
-    x0s = _x0s(segs)
+    x0s = _x0s(segs, model)
 
     def sim(th: Array, xs: Sequence[Array]) -> Array:
         with np.errstate(all="ignore"):
@@ -234,14 +236,15 @@ def _sensitivities(model: OEModel, theta: Array, segs: Sequence[Segment], w: Arr
             cols.append(np.zeros(sum(s.y.size for s in segs)))
             continue
         cols.append((sim(tp, x0s) - sim(tm, x0s)) / (hi - lo) * scale)
+    wx = w if model.C is None else np.full(model.nx, float(np.max(w)))  # hidden states
     for k in range(len(segs)):
         for j in range(model.nx):
-            h = 1e-3 * float(w[j])
+            h = 1e-3 * float(wx[j])
             xp = [x.copy() for x in x0s]
             xm = [x.copy() for x in x0s]
             xp[k][j] += h
             xm[k][j] -= h
-            cols.append((sim(theta, xp) - sim(theta, xm)) / (2 * h) * float(w[j]))
+            cols.append((sim(theta, xp) - sim(theta, xm)) / (2 * h) * float(wx[j]))
     return np.asarray(np.nan_to_num(np.column_stack(cols)))
 
 
@@ -264,7 +267,7 @@ def check(desc: Description, segments: Sequence[Segment],
     w[w == 0] = 1.0
     # the sensor floor of the outputs (first difference), in output standard deviations
     floor = max((noise_floor([s.y[:, j] for s in segments]).floor_rms / float(w[j])
-                 for j in range(model.nx)), default=0.0)
+                 for j in range(model.ny)), default=0.0)
     sigma = max(RESIDUAL_LEVEL, floor if math.isfinite(floor) else 0.0)
     J = _sensitivities(model, theta, segs, w)
     m = J.shape[0]
@@ -311,7 +314,7 @@ def check(desc: Description, segments: Sequence[Segment],
     # recording: its input never varies, or the simulation without it differs by less than
     # NO_INFLUENCE x sigma; a band that holds (gain undetermined locally) still matters
     base = np.concatenate([(model.simulate(theta, s, x) / w).ravel()
-                           for s, x in zip(segs, _x0s(segs), strict=True)])
+                           for s, x in zip(segs, _x0s(segs, model), strict=True)])
     removed: list[str] = []
     influence: dict[str, float] = {}
     for k, eff in enumerate(effects):
@@ -327,7 +330,7 @@ def check(desc: Description, segments: Sequence[Segment],
                                for e in others]) if others else theta[: model.n_struct]
         with np.errstate(all="ignore"):
             y0 = np.concatenate([(sub.simulate(th, s, x) / w).ravel()
-                                 for s, x in zip(segs, _x0s(segs), strict=True)])
+                                 for s, x in zip(segs, _x0s(segs, model), strict=True)])
         infl = float(np.sqrt(np.mean((base - y0) ** 2))) if np.all(np.isfinite(y0)) else math.inf
         influence[label] = infl
         if infl < NO_INFLUENCE * sigma:

@@ -39,6 +39,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -262,6 +263,12 @@ class IdentificationResult:
     identifiability: Identifiability | None = None
     drift: DriftReport | None = None
     data_warnings: list[str] = field(default_factory=list)
+    est_segments: list[Segment] = field(default_factory=list)
+    test: Any = None
+    """Figures on test data read after every choice (:class:`dvt_identify.series.TestFigures`)."""
+    selection: str = "validation"
+    """Which data chose the effects: ``validation`` (the validation bags) or ``holdout`` (the
+    held-out end of each estimation segment)."""
 
     @property
     def accepted(self) -> list[Decision]:
@@ -433,6 +440,8 @@ def member_force_residual(fit: OEFit, seg: Segment, member: Array) -> Array:
     A, _, F = fit.model.structure.matrices(fit.theta_[: fit.model.n_struct])
     yh = fit.model.simulate(fit.theta_, seg, fit.x0_[i])
     e = seg.y - yh
+    if fit.model.C is not None:  # hidden states: the residual does not give every state
+        return np.full(seg.n, np.nan)
     de = np.gradient(e, seg.dt, axis=0)
     g = np.linalg.solve(F, (de - e @ A.T).T).T
     return np.asarray(g @ member / float(member @ member))
@@ -487,9 +496,10 @@ def sensitivities(fit: OEFit, segments: Sequence[Segment], rel_step: float = 1e-
         tp[i] += h
         tm[i] -= h
         cols.append((sim(tp, fit.x0_) - sim(tm, fit.x0_)) / (2 * h))
+    wx = w if m.C is None else np.full(m.nx, float(np.max(w)))  # hidden states: output scale
     for k in range(len(segments)):
         for j in range(m.nx):
-            h = rel_step * max(float(w[j]), 1e-12) * 10.0
+            h = rel_step * max(float(wx[j]), 1e-12) * 10.0
             xp = [x.copy() for x in fit.x0_]
             xm = [x.copy() for x in fit.x0_]
             xp[k][j] += h
@@ -584,12 +594,18 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
            and len(current.effects) - n_model_effects < cfg.max_effects):
         rnd += 1
         say(f"round {rnd}: scoring {len(remaining)} candidate(s)")
-        scores = score_candidates(current.fit, fit_segs, remaining, say)
+        # the ``unlisted`` libraries are searched (dvt_identify.unlisted) only when no named
+        # candidate passes: their proposal is appended to the round's scores
+        named = [c for c in remaining if c.name != "unlisted"]
+        scores = score_candidates(current.fit, fit_segs, named, say) if named else []
         rounds.append(scores)
-        screened = [sc for sc in scores if sc.p_value < cfg.alpha and sc.r2 > 0.0]
+        # a non-local output map the baseline absorbed (no local score sees it) is refitted
+        # when the data show its signature (effects.sensors), before the scored ones
+        screened = ([sc for sc in scores if sc.extra.get("signature") is True]
+                    + [sc for sc in scores if sc.p_value < cfg.alpha and sc.r2 > 0.0
+                       and sc.extra.get("signature") is not True])
         if not screened:
             say(f"round {rnd}: no candidate scores significantly (LM p < {cfg.alpha})")
-            break
         trials = []
         for sc in screened[: cfg.max_tries_per_round]:
             say(f"round {rnd}: refit with {sc.label}")
@@ -597,6 +613,21 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
             say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
                 f"({dec.reason})")
             trials.append(dec)
+        if not any(d.accepted for d in trials) and len(named) < len(remaining):
+            from dvt_identify.unlisted import propose
+
+            say(f"round {rnd}: the named candidates leave the residual: searching the "
+                "unlisted term library")
+            prop = propose(current.fit, fit_segs, remaining, say)
+            if prop is not None and prop.p_value < cfg.alpha:
+                scores.append(prop)
+                say(f"round {rnd}: refit with {prop.label}")
+                dec = _try(current, prop, fit_segs, est, val, same_rate, cfg, rnd, say)
+                say(f"round {rnd}: {prop.label}: "
+                    f"{'passes' if dec.accepted else 'rejected'} ({dec.reason})")
+                trials.append(dec)
+        if not trials:
+            break
         decisions.extend(trials)
         passing = [d for d in trials if d.accepted]
         if not passing:
@@ -616,7 +647,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,
         decisions=decisions, config=cfg, seconds=time.monotonic() - t_start,
         fit_dt=fit_segs[0].dt, notes=notes, val_segments=list(val), identifiability=check,
-        drift=drift)
+        drift=drift, est_segments=list(est))
 
 
 def _fmt(f: Figures) -> str:
@@ -631,6 +662,12 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
     model = OEModel(old.model.structure, (*old.model.effects, sc.effect))
     theta0 = np.concatenate([old.theta_, [p.initial for p in sc.effect.params]])
     extra = []
+    if getattr(sc.effect, "global_map", False):
+        # the baseline may have bent itself towards the map: start first from the structure's
+        # prior values (the current optimum as the second start)
+        prior = theta0.copy()
+        prior[: old.model.n_struct] = [p.initial for p in old.model.specs[: old.model.n_struct]]
+        theta0, extra = prior, [theta0]
     if cfg.refit_starts > 1:
         alt = theta0.copy()
         alt[len(old.theta_):] = [0.5 * p.initial if p.initial != p.null else p.initial

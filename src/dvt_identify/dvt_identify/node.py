@@ -244,6 +244,8 @@ class IdentifyNode(Node):
         decim = declare("fit_decimate", 0, "decimation of the refit (0: the description's)")
         timeout = declare("snapshot_timeout_s", 60.0, "seconds after the window's end to wait "
                           "for the recorder's snapshot")
+        lag = declare("max_data_lag_s", 30.0, "the supervisor's clock is the newest residual "
+                      "stamp, but at most this far behind the node clock [s]")
         for name, v in (("starts", starts), ("fit_decimate", decim)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise SupervisorError(f"{p}.{name}: expected an integer >= 0, got {v!r}")
@@ -252,6 +254,12 @@ class IdentifyNode(Node):
             raise SupervisorError(f"{p}.snapshot_timeout_s: expected a time > 0 s, got "
                                   f"{timeout!r}")
         self.snapshot_timeout_s = float(timeout)
+        if isinstance(lag, bool) or not isinstance(lag, int | float) \
+                or not (math.isfinite(lag) and lag >= 0):
+            raise SupervisorError(f"{p}.max_data_lag_s: expected a time >= 0 s, got {lag!r}")
+        self.max_data_lag_s = float(lag)
+        self._newest_stamp = -math.inf
+        self._sup_clock = -math.inf
         try:
             config = sv.SupervisorConfig(**values).validated()
         except TypeError as exc:  # pragma: no cover - parameter types are the declared ones
@@ -282,7 +290,14 @@ class IdentifyNode(Node):
         self.get_logger().info(f"supervisor enabled: {config}")
 
     def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+        """The supervisor's clock [s]: the data time (the newest residual stamp) while the
+        residual flows, never more than ``supervisor.max_data_lag_s`` behind the node clock
+        (timeouts run when the data stop), never backwards. On a loaded host the model node
+        (and a replay) fall seconds behind the wall clock; windows and watch in data time
+        still hold the data they name."""
+        wall = self.get_clock().now().nanoseconds * 1e-9
+        self._sup_clock = max(self._sup_clock, self._newest_stamp, wall - self.max_data_lag_s)
+        return self._sup_clock
 
     def _on_alarm(self, msg: String) -> None:
         if self.supervisor is None:
@@ -306,6 +321,8 @@ class IdentifyNode(Node):
             residual = [float(values[n]) for n in SPEED_NAMES]
             stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             self.supervisor.observe(stamp, residual)
+            if stamp > self._newest_stamp and math.isfinite(stamp):
+                self._newest_stamp = stamp
         except (KeyError, ValueError, SupervisorError):
             return  # a malformed residual sample is skipped (counted by the model node)
 

@@ -127,6 +127,16 @@ def _read(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], desc: 
     return est, val
 
 
+def _distinct(est: Sequence[str | Path], val: Sequence[str | Path],
+              test: Sequence[str | Path]) -> None:
+    """Refuse a test bag that is also an estimation or validation bag."""
+    seen = {str(Path(b).resolve()) for b in [*est, *val]}
+    for b in test:
+        if str(Path(b).resolve()) in seen:
+            raise DataError(f"{b}: used as test data and for estimation or validation; the "
+                            "test must be separate data")
+
+
 def loop_config(desc: Description, augment: bool = True, starts: int | None = None,
                 fit_decimate: int | None = None) -> LoopConfig:
     """The description's loop options with the caller's overrides (``None``: keep)."""
@@ -140,7 +150,9 @@ def loop_config(desc: Description, augment: bool = True, starts: int | None = No
 def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir: str | Path,
         description: str | None = None, augment: bool = True, starts: int | None = None,
         fit_decimate: int | None = None, quiet: bool = False, plots: bool = True,
-        progress: Progress | None = None) -> IdentificationResult:
+        progress: Progress | None = None, test_bags: Sequence[str | Path] = (),
+        select_on: str = "validation", init_window: int = 0, series: bool = True,
+        mcap: bool = False) -> IdentificationResult:
     """The whole pipeline; returns the result after writing the report to ``out_dir`` (with
     its PNG plots unless ``plots`` is false).
 
@@ -153,10 +165,27 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         quiet: no progress lines (data warnings are still shown).
         plots: write the PNG plots.
         progress: receives the progress lines (default: stderr).
+        test_bags: read only after every choice is made (:mod:`dvt_identify.series`); their
+            figures took no part in fitting or choosing effects.
+        select_on: ``validation`` (the validation bags choose the effects) or ``holdout``
+            (the last 30 % of each estimation segment chooses them; the validation bags are
+            then test data, read after every choice).
+        init_window: test initial states from the first ``init_window`` samples only
+            (benchmark style; 0: the whole segment).
+        series: write ``series.npz`` and ``series/*.csv``
+            (:func:`dvt_identify.series.write_series`).
+        mcap: also write each segment's series as an MCAP bag with the model topics.
 
     Raises:
         DvtIdentifyError: bad input (description, bags, data).
     """
+    from dvt_identify import series as series_mod
+
+    if select_on not in ("validation", "holdout"):
+        raise DataError(f"select_on: expected validation or holdout, got {select_on!r}")
+    if select_on == "holdout":  # the validation bags become test data
+        test_bags, val_bags = [*val_bags, *test_bags], []
+    _distinct(est_bags, val_bags, test_bags)
     t0 = time.monotonic()
     say = _quiet if quiet else (progress or stderr_progress)
     desc = load_description(description)
@@ -175,9 +204,29 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
     say(f"data read in {time.monotonic() - t0:.1f} s: "
         + ", ".join(f"{Path(s.name).name} {s.n} samples at {1 / s.dt:g} Hz" for s in est + val))
     cfg = loop_config(desc, augment, starts, fit_decimate)
-    result = identify(est, val, desc, cfg, say, check=chk)
+    if select_on == "holdout":
+        fit_part, held = series_mod.holdout_split(est)
+        say(f"selection on the held-out last {100 * series_mod.HOLDOUT_FRACTION:g} % of each "
+            "estimation segment")
+        result = identify(fit_part, held, desc, cfg, say, check=chk)
+    else:
+        result = identify(est, val, desc, cfg, say, check=chk)
+    result.selection = select_on
     result.data_warnings = data_warnings
+    test: list[Segment] = []
+    if test_bags:  # read only now: every choice is made
+        _, test = _read([], test_bags, desc, data_warnings)
+        result.test = series_mod.evaluate_test(result.baseline.fit, result.final.fit, test,
+                                               init_window)
+        say("test fit (no part in any choice): " + ", ".join(
+            f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(
+                result.test.final.output_names, result.test.baseline.fit_percent,
+                result.test.final.fit_percent, strict=True)))
     paths = write_report(result, out_dir, plots_enabled=plots)
+    if series:
+        sp = series_mod.write_series(series_mod.collect(result, result.test, test), out_dir,
+                                     desc, mcap=mcap)
+        say(f"series written: {sp['npz']}")
     say(f"report written: {paths['json']} and {paths['md']} ({time.monotonic() - t0:.1f} s)")
     return result
 

@@ -344,7 +344,37 @@ def build_warnings(result: IdentificationResult) -> list[str]:
         out.append(f"suspect optimum: {reason}")
     if result.drift is not None:
         out += [f"drift: {p.statement()}" for p in result.drift.drifting]
+    out += time_clock_warnings(result)
     return out
+
+
+def time_clock_warnings(result: IdentificationResult) -> list[str]:
+    """A term clocked on time (``clock: time``) in the final model restarts its phase at
+    ``t = 0`` in every segment: across several bags its fitted phase is a compromise and holds
+    on new data only if each recording starts in phase with the disturbance."""
+    n_est = len(getattr(result, "est_segments", []) or []) or len(result.estimation_bags)
+    n_val = len(result.val_segments)
+    out = []
+    for e in result.final.effects:
+        if str(e.options.get("clock", "")).strip().lower() == "time" and n_est + n_val > 1:
+            out.append(f"{e.label()} is clocked on time: its phase restarts at t = 0 in each of "
+                       f"the {n_est + n_val} segments ({n_est} estimation, {n_val} "
+                       "validation), so its fitted phase holds on other data only if every "
+                       "recording starts in phase with the disturbance; clock it on a member's "
+                       "angle instead")
+    return out
+
+
+def _selection(result: IdentificationResult) -> dict[str, str]:
+    """Which figure is which: the data that chose the effects and the test figure."""
+    held = getattr(result, "selection", "validation") == "holdout"
+    return {"chosen_on": ("the held-out last part of each estimation segment (the 'validation' "
+                          "figures are on it)" if held else "the validation bags"),
+            "validation_figures": ("selection figures: these data chose the effects, so they "
+                                   "are not an independent test"),
+            "test_figures": ("on test bags read after every choice: no part in fitting or "
+                             "choosing" if getattr(result, "test", None) is not None
+                             else "none (pass --test BAG...)")}
 
 
 def build_report(result: IdentificationResult) -> dict[str, Any]:
@@ -389,6 +419,8 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
                      "fit_decimate": result.config.fit_decimate},
         "notes": result.notes,
         "seconds": result.seconds,
+        "selection": _selection(result),
+        "test": result.test.as_dict() if getattr(result, "test", None) is not None else None,
     }
     if rep["candidates"] is None:
         del rep["candidates"]
@@ -699,14 +731,19 @@ def plot_candidates(result: IdentificationResult, out: Path,
 
 def plot_linear(result: IdentificationResult, out: Path,
                 save: _PngWriter | None = None) -> Path:
-    """Step response and Bode magnitude/phase of the final model's linear part (C = I)."""
+    """Step response and Bode magnitude/phase of the final model's linear part (to the
+    measured outputs: ``C`` of a structure with hidden states, else C = I)."""
     plt = _plt()
     save = save or _PngWriter()
     A, B = result.final.linear()
     nx, nu = B.shape
     ins = result.description.input_names
     outs = result.description.output_names
+    C = result.final.fit.model.C  # None: C = I; else the measured states of hidden ones
+    ny = nx if C is None else C.shape[0]
     eig = np.linalg.eigvals(A)
+    if C is not None:  # an angle's integrator (eigenvalue 0) sets no time scale
+        eig = eig[np.abs(eig) > 1e-9 * max(float(np.max(np.abs(eig), initial=0.0)), 1e-300)]
     slow = float(np.min(np.abs(eig.real))) if eig.size else 1.0
     fast = float(np.max(np.abs(eig))) if eig.size else 1.0
     tend = 6.0 / max(slow, 1e-6)
@@ -715,10 +752,14 @@ def plot_linear(result: IdentificationResult, out: Path,
     fig, axes = plt.subplots(3, 1, figsize=(9, 9))
     Ad, Gd = zoh(A, float(t[1] - t[0]))
     H = _freq_all(A, B, w)  # (len(w), nx, nu)
+    if C is not None:
+        H = np.einsum("ij,wjk->wik", C, H)
     for i in range(nu):
         d = np.tile(Gd @ B[:, i], (t.size, 1))
         yy = simulate_linear(Ad, d, np.zeros(nx))
-        for j in range(nx):
+        if C is not None:
+            yy = yy @ C.T
+        for j in range(ny):
             axes[0].plot(t, yy[:, j], label=f"{ins[i]} -> {outs[j]}")
             Hj = H[:, j, i]
             axes[1].loglog(w / (2 * np.pi), np.abs(Hj), label=f"{ins[i]} -> {outs[j]}")
@@ -793,6 +834,21 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
         e = st["estimation"]
         lines.append(f"| {lab} | {_f(e['loss'])} | {_f(e['fpe'])} | {_f(e['aic'], 8)} | "
                      f"{_f(e['bic'], 8)} | {e['n_params']} |")
+    sel = rep.get("selection") or {}
+    if sel:
+        lines += ["", f"Effects chosen on {sel['chosen_on']}: the validation figures above are "
+                  "selection figures.", ""]
+    t = rep.get("test")
+    if t:
+        lines += ["## Test (took no part in any choice)", "",
+                  f"Test bags: {', '.join(f'`{x}`' for x in t['bags'])}; initial state "
+                  f"{t['initial_state']}.", "",
+                  "| output | baseline fit % | final fit % | baseline RMSE | final RMSE |",
+                  "|---|---|---|---|---|"]
+        for o in rep["outputs"]:
+            lines.append(f"| {o} | {_f(t['baseline']['fit_percent'][o])} | "
+                         f"{_f(t['final']['fit_percent'][o])} | {_f(t['baseline']['rmse'][o])} "
+                         f"| {_f(t['final']['rmse'][o])} |")
     lines += ["", "## Parameters (final model)", "",
               "| parameter | value | std dev | relative std % |", "|---|---|---|---|"]
     rel = f.get("parameter_relative_std") or {}

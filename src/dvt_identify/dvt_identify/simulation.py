@@ -25,7 +25,7 @@ from dvt_identify.data import Segment
 from dvt_identify.effects import Effect, ParamSpec, SegmentView
 from dvt_identify.errors import DataError, DescriptionError, FitError
 from dvt_identify.simloop import loop_members, loop_scalar, smooth_value
-from dvt_identify.structures import ModelStructure
+from dvt_identify.structures import ModelStructure, output_matrix, output_names
 
 Array = NDArray[np.float64]
 
@@ -228,11 +228,18 @@ class OEModel:
         self.free = np.array([n not in fixed for n in names], dtype=bool)
         self.n_struct = len(structure.params)
         self.nonlinear = any(e.state_dependent for e in self.effects)
+        self.C = output_matrix(structure)
+        self.output_names = output_names(structure)
 
     @property
     def nx(self) -> int:
-        """Number of states = outputs."""
+        """Number of states (= outputs unless the structure has hidden states)."""
         return len(self.structure.state_names)
+
+    @property
+    def ny(self) -> int:
+        """Number of outputs."""
+        return len(self.output_names)
 
     def initial(self) -> Array:
         """Initial values of every parameter, shape (p,)."""
@@ -243,13 +250,20 @@ class OEModel:
         return [theta[s] for s in self._slices]
 
     def simulate(self, theta: Array, seg: Segment, x0: Array) -> Array:
-        """Simulated outputs, shape (N, ny), for parameters ``theta`` and initial state ``x0``.
+        """Simulated outputs, shape (N, ny) (see :meth:`simulate_states`)."""
+        return self.simulate_states(theta, seg, x0)[1]
+
+    def simulate_states(self, theta: Array, seg: Segment, x0: Array) -> tuple[Array, Array]:
+        """Simulated states (N, nx) and outputs (N, ny) for parameters ``theta`` and initial
+        state ``x0`` (nx,); ``y = C x`` then the effects' output maps.
 
         Raises:
-            FitError: ``theta`` has the wrong length.
+            FitError: ``theta`` or ``x0`` has the wrong length.
         """
         if theta.shape != (len(self.specs),):
             raise FitError(f"theta: expected shape ({len(self.specs)},), got {theta.shape}")
+        if np.shape(x0) != (self.nx,):
+            raise FitError(f"x0: expected shape ({self.nx},), got {np.shape(x0)}")
         A, B, F = self.structure.matrices(theta[: self.n_struct])
         ps = self.effect_params(theta)
         u = seg.u
@@ -292,12 +306,12 @@ class OEModel:
             x = simulate_loop(A, Ad, Gd, F, w, d, np.asarray(x0, float), smooth, dry)
         else:
             x = simulate_linear(Ad, d, np.asarray(x0, float))
-        y = x
+        y = x if self.C is None else x @ self.C.T
         for e, p in zip(self.effects, ps, strict=True):
             yt = e.output_transform(p, y, seg.dt)
             if yt is not None:
                 y = yt
-        return y
+        return x, y
 
     def parameters(self, theta: Array) -> dict[str, float]:
         """Physical parameters of the structure, every effect parameter and derived figures."""

@@ -67,14 +67,35 @@ class ModelStructure(Protocol):
         ...
 
 
-_ENTRY = re.compile(r"^\s*([+-]?)\s*((?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)?\s*\*?\s*"
-                    r"([A-Za-z_][A-Za-z0-9_]*)\s*$")
+_TERM = re.compile(r"\s*([+-])?\s*((?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)?\s*(\*)?\s*"
+                   r"([A-Za-z_][A-Za-z0-9_]*)?\s*")
+
+
+def _entry_terms(txt: str) -> list[tuple[float, str | None]] | None:
+    """``txt`` as a sum of terms ``[sign][coef*]name`` or numbers (``"c + dm"``,
+    ``"-k"``, ``"2*k - 0.5"``): ``(coefficient, name or None)`` each; ``None`` if not that."""
+    out: list[tuple[float, str | None]] = []
+    pos = 0
+    while pos < len(txt):
+        m = _TERM.match(txt, pos)
+        if m is None or m.end() == pos:
+            return None
+        sign, num, star, name = m.groups()
+        if (num is None and name is None) or (star and (num is None or name is None)):
+            return None
+        if out and sign is None:
+            return None
+        coef = float(num) if num is not None else 1.0
+        out.append((-coef if sign == "-" else coef, name))
+        pos = m.end()
+    return out or None
 
 
 class ParamMatrix:
-    """A matrix whose entries are numbers or ``[sign][coef*]name`` of a parameter.
+    """A matrix whose entries are numbers or sums of ``[sign][coef*]name`` of parameters.
 
-    Example: ``[[ "-Fv" ]]`` or ``[[A11, A12], [A21, A22]]`` or ``[[1.0, "0.5*k"]]``.
+    Example: ``[[ "-Fv" ]]`` or ``[[A11, A12], [A21, A22]]`` or ``[[1.0, "0.5*k"]]`` or
+    ``[["c + dm", "-c"], ["-c", "c + dl"]]``.
     """
 
     def __init__(self, spec: object, what: str, names: Sequence[str],
@@ -103,15 +124,16 @@ class ParamMatrix:
                     continue
                 except ValueError:
                     pass
-                m = _ENTRY.match(txt)
-                if m is None or m.group(3) not in names:
-                    raise DescriptionError(f"{what}[{i}][{j}]: {txt!r} is not a number or "
-                                           f"[-][coef*]parameter (parameters: "
+                terms = _entry_terms(txt)
+                if terms is None or any(n is not None and n not in names for _, n in terms):
+                    raise DescriptionError(f"{what}[{i}][{j}]: {txt!r} is not a number or a sum "
+                                           f"of [-][coef*]parameter terms (parameters: "
                                            f"{', '.join(names)})")
-                coef = float(m.group(2)) if m.group(2) else 1.0
-                if m.group(1) == "-":
-                    coef = -coef
-                self.terms.append((i, j, coef, list(names).index(m.group(3))))
+                for coef, pname in terms:
+                    if pname is None:
+                        self.const[i, j] += coef
+                    else:
+                        self.terms.append((i, j, coef, list(names).index(pname)))
 
     def __call__(self, theta: Array) -> Array:
         out = self.const.copy()
@@ -272,3 +294,159 @@ class MechanicalStructure(LinearStructureBase):
         """``(-M^-1 D, M^-1 Q, M^-1)``; raises ``LinAlgError`` for a singular ``M``."""
         Minv = np.asarray(np.linalg.inv(self._M(theta)), dtype=float)
         return -Minv @ self._D(theta), Minv @ self._Q(theta), Minv
+
+
+class SpringMechanicalStructure(LinearStructureBase):
+    """``M q'' = -D q' - K q + Q u + tau`` with hidden states: members joined by springs.
+
+    States ``x = [q; w]`` (nx = 2n): the members' angles (or positions), named
+    ``<member>_angle``, then their speeds, named ``<member>``; ``A = [[0, I], [-M^-1 K,
+    -M^-1 D]]``, ``B = [0; M^-1 Q]``, ``F`` maps a generalised force on a speed state to
+    ``M^-1`` (zero rows and columns for the angles). ``K`` holds the springs: one between
+    members ``a`` and ``b`` adds ``k`` to ``K_aa`` and ``K_bb`` and ``-k`` to ``K_ab``,
+    ``K_ba``; one to ground adds ``k`` to ``K_aa`` only. A matrix entry may be a sum
+    (``"c + dm"``).
+
+    The outputs are any subset of the states, ``y = C x`` (``C`` (ny, nx) selects them):
+    ``outputs`` maps each measured output name to a state name; a member that carries no
+    sensor is a hidden state, and the fit estimates every initial state (angles included).
+
+    Args:
+        members: the member names (n).
+        output_names: the measured outputs (the description's output names).
+        input_names: nu input names.
+        mass, damping, stiffness: (n, n) matrices; ``input_matrix`` (n, nu).
+        outputs: output name -> state name (default: each output is the state of its name).
+
+    Raises:
+        DescriptionError: a wrong shape, an unknown state, a member named twice.
+    """
+
+    def __init__(self, members: Sequence[str], output_names: Sequence[str],
+                 input_names: Sequence[str], mass: object, damping: object, stiffness: object,
+                 input_matrix: object, parameters: dict[str, Any],
+                 outputs: dict[str, str] | None = None, force_unit: str = "",
+                 speed_unit: str = "", angle_unit: str = "", what: str = "structure") -> None:
+        mem = [str(m) for m in members]
+        if not mem or len(set(mem)) != len(mem):
+            raise DescriptionError(f"{what}.members: expected distinct member names, got {mem}")
+        states = [f"{m}_angle" for m in mem] + mem
+        if len(set(states)) != len(states):
+            raise DescriptionError(f"{what}.members: a member is named like another's angle "
+                                   f"({states})")
+        names, _, nu = self._init_names(states, input_names, parameters, what)
+        n = len(mem)
+        self.members = tuple(mem)
+        self._M = ParamMatrix(mass, f"{what}.mass", names, (n, n))
+        self._D = ParamMatrix(damping, f"{what}.damping", names, (n, n))
+        self._K = ParamMatrix(stiffness, f"{what}.stiffness", names, (n, n))
+        self._Q = ParamMatrix(input_matrix, f"{what}.input_matrix", names, (n, nu))
+        outs = [str(o) for o in output_names]
+        mapping = {o: o for o in outs} if outputs is None else {str(k): str(v)
+                                                                for k, v in outputs.items()}
+        missing = [o for o in outs if o not in mapping]
+        extra = sorted(set(mapping) - set(outs))
+        if missing or extra:
+            raise DescriptionError(f"{what}.outputs: must map exactly the outputs {outs} to "
+                                   f"states" + (f"; missing {missing}" if missing else "")
+                                   + (f"; not outputs {extra}" if extra else ""))
+        bad = sorted({v for v in mapping.values() if v not in states})
+        if bad:
+            raise DescriptionError(f"{what}.outputs: {bad} are not states (states: "
+                                   f"{', '.join(states)})")
+        self.output_names = tuple(outs)
+        self.output_states = tuple(mapping[o] for o in outs)
+        C = np.zeros((len(outs), 2 * n))
+        for r, st in enumerate(self.output_states):
+            C[r, states.index(st)] = 1.0
+        self._C = C
+        self.force_unit = force_unit
+        self.speed_unit = speed_unit
+        self.angle_unit = angle_unit
+
+    def output_matrix(self) -> Array:
+        """``C`` (ny, nx): the rows of the identity that select the measured states."""
+        return self._C.copy()
+
+    def mass_damping_stiffness(self, theta: Array) -> tuple[Array, Array, Array]:
+        """``M``, ``D``, ``K`` (n, n) at ``theta``."""
+        return self._M(theta), self._D(theta), self._K(theta)
+
+    def matrices(self, theta: Array) -> tuple[Array, Array, Array]:
+        """``A`` (2n, 2n), ``B`` (2n, nu), ``F`` (2n, 2n); raises ``LinAlgError`` for a
+        singular ``M``."""
+        n = len(self.members)
+        Minv = np.asarray(np.linalg.inv(self._M(theta)), dtype=float)
+        A = np.zeros((2 * n, 2 * n))
+        A[:n, n:] = np.eye(n)
+        A[n:, :n] = -Minv @ self._K(theta)
+        A[n:, n:] = -Minv @ self._D(theta)
+        B = np.zeros((2 * n, len(self.input_names)))
+        B[n:] = Minv @ self._Q(theta)
+        F = np.zeros((2 * n, 2 * n))
+        F[n:, n:] = Minv
+        return A, B, F
+
+    def initial_state(self, y0: Array) -> Array:
+        """A start for the initial state from the first measured outputs ``y0`` (ny,): measured
+        states as measured, unmeasured speeds at the mean measured speed, unmeasured angles
+        at the mean measured angle (0 when none is measured)."""
+        n = len(self.members)
+        x = np.zeros(2 * n)
+        seen = np.zeros(2 * n, dtype=bool)
+        for r, st in enumerate(self.output_states):
+            k = self.state_names.index(st)
+            x[k] = float(y0[r])
+            seen[k] = True
+        for part in (slice(0, n), slice(n, 2 * n)):
+            s = seen[part]
+            xs = x[part]
+            xs[~s] = float(xs[s].mean()) if np.any(s) else 0.0
+            x[part] = xs
+        return x
+
+    def initial_guess(self, segments: Sequence[Segment]) -> Array:
+        """The parameters' initial values (the equation-error start of :class:`LinearStructureBase`
+        needs every state measured)."""
+        return np.array([p.initial for p in self.params], dtype=float)
+
+    def modes(self, theta: Array) -> list[dict[str, float]]:
+        """The oscillating modes of the linear part at ``theta``: undamped natural frequency
+        [Hz] and damping ratio of each complex pair (upper half plane), slowest first."""
+        A, _, _ = self.matrices(theta)
+        lam = np.linalg.eigvals(A)
+        out = []
+        for v in sorted((v for v in lam if v.imag > 1e-9), key=lambda z: abs(z)):
+            wn = abs(v)
+            out.append({"frequency_hz": float(wn / (2 * math.pi)),
+                        "damping_ratio": float(-v.real / wn)})
+        return out
+
+    def physical(self, theta: Array) -> dict[str, float]:
+        """Parameters by name, then each mode's natural frequency and damping ratio."""
+        out = super().physical(theta)
+        try:
+            for i, md in enumerate(self.modes(theta), start=1):
+                out[f"mode{i}_frequency_hz"] = md["frequency_hz"]
+                out[f"mode{i}_damping_ratio"] = md["damping_ratio"]
+        except (np.linalg.LinAlgError, ValueError):
+            pass
+        return out
+
+
+def output_names(structure: ModelStructure) -> tuple[str, ...]:
+    """The structure's measured outputs: its ``output_names`` when it has hidden states, else
+    its states (C = I)."""
+    return tuple(getattr(structure, "output_names", structure.state_names))
+
+
+def output_matrix(structure: ModelStructure) -> Array | None:
+    """``C`` (ny, nx) of a structure with hidden states, ``None`` for C = I."""
+    fn = getattr(structure, "output_matrix", None)
+    return None if fn is None else np.asarray(fn(), dtype=float)
+
+
+def initial_state(structure: ModelStructure, y0: Array) -> Array:
+    """A start for the initial state (nx,) from the first measured outputs ``y0`` (ny,)."""
+    fn = getattr(structure, "initial_state", None)
+    return np.asarray(y0, dtype=float).copy() if fn is None else np.asarray(fn(y0), float)

@@ -12,10 +12,12 @@ States (:class:`State`)::
                                                          watching --worse--> rolling_back
       rolling_back --rollback_done--> idle                              [outcome "rolled_back"]
 
-* **waiting**: the estimation data start ``settle_s`` after the alarm's estimated change time;
-  the supervisor waits until ``min_post_change_s`` of post-change data exist. Another alarm
-  while waiting restarts the wait from its change time (the data must come from one regime).
-* **refitting**: :class:`RequestFit` names the estimation window ``[change + settle,
+* **waiting**: the estimation data start ``settle_s`` after the alarm's estimated change time,
+  but not before the detection (``stamp_s``: the estimated change time can be seconds early);
+  the supervisor waits until ``min_post_change_s - settle_s`` of data after that start
+  exist. Another alarm while waiting restarts the wait from its change time (the data must
+  come from one regime).
+* **refitting**: :class:`RequestFit` names the estimation window ``[start,
   now - validation_s]`` (at most ``max_estimation_s``, the newest part) and the validation window
   ``[now - validation_s, now]`` (the newest held-out slice), ROS time [s]. The caller fits on the
   estimation window, simulates the new and the current model on the validation window and calls
@@ -273,6 +275,7 @@ class Supervisor:
         self._pending: dict[str, Any] | None = None
         self._since = 0.0
         self._change = 0.0
+        self._detected = 0.0
         self._push_s = 0.0
         self._fit: FitOutcome | None = None
 
@@ -331,6 +334,7 @@ class Supervisor:
                 "expected": None, "live_ratio": None, "rolled_back": False, "outcome": None,
                 "reason": "", "timings": {"alarm_s": now_s}, "steps": []}
             self._change = change
+            self._detected = float(a["stamp_s"])
             return [self._step(now_s, State.WAITING,
                                f"change on {name or '?'} at {change:.3f} s; waiting "
                                f"{self.config.min_post_change_s:g} s of post-change data",
@@ -342,7 +346,9 @@ class Supervisor:
         if name and name not in ep["outputs"]:
             ep["outputs"].append(name)
         if self.state is State.WAITING:
-            self._change = max(self._change, change)
+            if change >= self._change:
+                self._change = change
+                self._detected = float(a["stamp_s"])
             ep["estimation_start_s"] = self._change
             return [self._step(now_s, State.WAITING,
                                f"another change on {name or '?'} at {change:.3f} s; waiting "
@@ -358,9 +364,12 @@ class Supervisor:
         c = self.config
         ep = self._ep
         if self.state is State.WAITING and ep is not None:
-            if now_s >= self._change + c.min_post_change_s:
+            # the estimated change time can be seconds early (a CUSUM with a small k): the
+            # estimation data start at the detection at the earliest
+            start = max(self._change + c.settle_s, self._detected)
+            if now_s >= start - c.settle_s + c.min_post_change_s:
                 t_val = now_s - c.validation_s
-                t_est = max(self._change + c.settle_s, t_val - c.max_estimation_s)
+                t_est = max(start, t_val - c.max_estimation_s)
                 ep["estimation"] = (t_est, t_val)
                 ep["validation"] = (t_val, now_s)
                 ep["timings"]["waiting_s"] = now_s - ep["timings"]["alarm_s"]

@@ -65,7 +65,8 @@ def _to_refit(sup: Supervisor, change: float = 100.0) -> RequestFit:
 def test_windows_of_the_refit() -> None:
     sup = Supervisor(CFG)
     req = _to_refit(sup)
-    assert req.estimation == pytest.approx((101.0, 121.0))  # change + settle .. now - val
+    # from the detection (102: later than change + settle) .. now - val
+    assert req.estimation == pytest.approx((102.0, 121.0))
     assert req.validation == pytest.approx((121.0, 131.0))  # the newest 10 s, held out
     assert req.outputs == ("sun_shaft",)
 
@@ -290,3 +291,16 @@ def test_episode_markdown_summarises_the_record() -> None:
     md = episode_markdown(rep.record)
     assert md.startswith("# Episode 1: not_better")
     assert "accepted effects: none" in md and "* 102.000 waiting: change on sun_shaft" in md
+
+
+def test_estimation_starts_after_change_plus_settle_when_detected_early() -> None:
+    sup = Supervisor(CFG)
+    sup.on_alarm(_alarm(100.0, 100.5), 100.5)  # detected before change + settle
+    assert sup.tick(129.9) == []
+    (req,) = _of(sup.tick(130.0), RequestFit)  # change + min_post_change_s
+    assert req.estimation == pytest.approx((101.0, 120.0))
+    sup2 = Supervisor(CFG)
+    sup2.on_alarm(_alarm(100.0, 103.0), 103.0)  # change_s 3 s early: wait longer
+    assert sup2.tick(131.9) == []
+    (req2,) = _of(sup2.tick(132.0), RequestFit)
+    assert req2.estimation == pytest.approx((103.0, 122.0))

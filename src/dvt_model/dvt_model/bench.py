@@ -174,7 +174,8 @@ def run(rate: float, seconds: float, params: str = "physical", detector: bool = 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="dvt-bench model", description=__doc__.splitlines()[0])
     parser.add_argument("--rate", type=float, default=1000.0)
-    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--seconds", type=float, default=30.0,
+                        help="sending time [s] (30: the detector learns 20 s, then tests)")
     parser.add_argument("--params", default="physical")
     parser.add_argument("--no-detector", action="store_true",
                         help="start the node with detector.enabled:=false (comparison)")

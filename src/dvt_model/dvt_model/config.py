@@ -204,10 +204,12 @@ class DetectorSetup:
         block: residual samples averaged into one detector sample (1: every sample).
         config: the detector's settings at the block rate (``sample_rate_hz`` is
             ``detector.sample_rate_hz / block``).
+        settle_s: wait after an anchor of the model before learning [s].
     """
 
     block: int
     config: DetectorConfig
+    settle_s: float = 3.0
 
 
 def _detector(v: Mapping[str, Any]) -> DetectorSetup | None:
@@ -224,7 +226,8 @@ def _detector(v: Mapping[str, Any]) -> DetectorSetup | None:
         raise ParameterError(f"{p}max_gap_s: expected more than one detector sample period "
                              f"({block / rate:g} s with {p}block_s = {v[p + 'block_s']:g} s), "
                              f"got {cfg.max_gap_s:g}")
-    return DetectorSetup(block=block, config=cfg) if v[p + "enabled"] else None
+    return (DetectorSetup(block=block, config=cfg, settle_s=float(v[p + "settle_s"]))
+            if v[p + "enabled"] else None)
 
 
 def detector_config(values: Mapping[str, Any]) -> DetectorSetup | None:

@@ -483,6 +483,12 @@ MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
               "(round(block_s * sample_rate_hz) samples; 0 = every sample): averaging removes "
               "the encoder's quantisation pattern, which is not the noise the CUSUM is designed "
               "for; read-only", 0.01, lo=0.0, hi=1.0),
+    NodeParam(f"{DETECTOR_PREFIX}.settle_s", "double", "s",
+              "after every anchor of the model to the measurement (the first sample, a stream "
+              "restart, a guard re-anchor; not the periodic ones of reanchor mode) the detector "
+              "waits this long, then learns anew: the anchor's error decays with the "
+              "transmission's time constants (slowest 0.58 s in the bundled sets); read-only",
+              3.0, lo=0.0, hi=600.0),
     NodeParam(f"{DETECTOR_PREFIX}.learn_s", "double", "s",
               "reference window after a start, a model change or an alarm (at least 100 "
               "samples); read-only", 20.0, lo=0.0, hi=3600.0, lo_open=True),

@@ -35,7 +35,11 @@ as means of ``detector.block_s`` blocks (10 ms = 10 samples at 1 kHz,
 per-sample sun-shaft residual a two-level pattern that no ARMA(1,1) whitening makes Gaussian
 (per sample the detector raised an alarm within 0.1 s of every reference window on a clean
 simulated plant); its 10-ms mean is well behaved. The alarm's ``change_s`` and ``stamp_s`` are
-block starts (resolution ``block_s``). On an alarm the node publishes the alarm's JSON
+block starts (resolution ``block_s``). After every anchor of the model to the measurement in
+simulate mode (the first sample, a stream restart, a guard re-anchor) the detector waits
+``detector.settle_s`` (the anchor's error decays with the transmission's time constants) and
+then learns anew (``anchor_restarts`` in its status). On an alarm the node publishes the
+alarm's JSON
 (:meth:`~dvt_model.detect.Alarm.to_json`: ``change_s`` the estimated change time, ``stamp_s``
 the detection, ``name``, ``direction``, ``shift`` [rad/s]) on ``/dvt/model/change``
 (:data:`~dvt_model.contract.MODEL_CHANGE`, reliable, transient-local, depth 10) and at once a
@@ -65,7 +69,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from dvt_model import rosutil
-from dvt_model.config import build_predictor, detector_config
+from dvt_model.config import DetectorSetup, build_predictor, detector_config
 from dvt_model.contract import (
     CHANGE_QOS,
     CURRENT_NAMES,
@@ -83,7 +87,7 @@ from dvt_model.contract import (
     NodeParam,
     short_repr,
 )
-from dvt_model.detect import Alarm, ChangeDetector
+from dvt_model.detect import Alarm, ChangeDetector, reference_from_window
 from dvt_model.errors import DvtModelError
 from dvt_model.predictor import Predictor, ResidualBlocks
 from dvt_model.recording.pairing import LivePairer
@@ -94,6 +98,14 @@ ALARM_HOLD_S = 10.0
 """The periodic detector status stays WARN this long after an alarm [s, node clock]."""
 DETECTOR_STATUS = f"{MODEL_NODE}: change detector"
 """Name of the detector's ``DiagnosticStatus``."""
+
+
+def _warm_up(setup: DetectorSetup) -> None:
+    """Learn one reference from noise at start-up: the first end of a reference window then
+    costs its ~2 ms, not the imports (scipy.signal) and first calls that took seconds on a
+    loaded machine and would stall the 1 kHz stream."""
+    rng = np.random.default_rng(0)
+    reference_from_window(rng.standard_normal(setup.config.learn_samples), setup.config)
 
 
 def _descriptor(spec: NodeParam) -> ParameterDescriptor:
@@ -127,8 +139,14 @@ class ModelNode(Node):
         setup = detector_config(self._values())
         self.detector: ChangeDetector | None = None
         self.blocks: ResidualBlocks | None = None
+        self.settle_s = 0.0
+        self._settle_until = -float("inf")  # stamp [s] before which the detector waits
+        self._last_stamp = -float("inf")
+        self.anchor_restarts = 0
         if setup is not None:
+            self.settle_s = setup.settle_s
             self.detector = ChangeDetector(setup.config)
+            _warm_up(setup)
             self.blocks = ResidualBlocks(setup.block, len(SPEED_NAMES),
                                          setup.config.max_gap_s)
         self.detector_resets = 0
@@ -247,11 +265,25 @@ class ModelNode(Node):
         self.pub_res.publish(res)
         self.published += 1
         if self.blocks is not None:  # after publishing: the residual's latency comes first
-            block = self.blocks.add(stamp_ns * 1e-9, residual)
+            t = stamp_ns * 1e-9
+            self._last_stamp = t
+            if pred.anchored and self.predictor.mode == "simulate":
+                self._restart_detector(t)
+            if t < self._settle_until:
+                return
+            block = self.blocks.add(t, residual)
             if block is not None and self.detector is not None:
                 alarm = self.detector.update(block[0], block[1])
                 if alarm is not None:
                     self._on_alarm(alarm)
+
+    def _restart_detector(self, stamp: float) -> None:
+        """The model was anchored to the measurement: wait ``settle_s``, then learn anew."""
+        if self.detector is not None and self.blocks is not None:
+            self.detector.reset()
+            self.blocks.clear()
+            self._settle_until = stamp + self.settle_s
+            self.anchor_restarts += 1
 
     def _on_alarm(self, alarm: Alarm) -> None:
         """Publish an alarm on the change topic and as WARN on ``/diagnostics``."""
@@ -270,6 +302,9 @@ class ModelNode(Node):
             return {"state": "off"}
         values = det.status()
         values["resets"] = str(self.detector_resets)
+        values["anchor_restarts"] = str(self.anchor_restarts)
+        if det.learning and self._last_stamp < self._settle_until:
+            values["state"] = "settling"
         last = det.counters.last_alarm
         if last is not None:
             values["last_alarm"] = last.to_json()
@@ -315,7 +350,8 @@ class ModelNode(Node):
                                          f"{last.shift:+.4g} rad/s)")
         else:
             level = rosutil.OK
-            text = ("learning the residual" if det.learning else "testing") + (
+            text = (("settling after an anchor" if self._last_stamp < self._settle_until
+                     else "learning the residual") if det.learning else "testing") + (
                 f"; {det.counters.alarms} alarm(s)" if det.counters.alarms else "")
         self.pub_diag.publish(rosutil.diagnostic(self, DETECTOR_STATUS, level, text,
                                                  self._detector_values()))

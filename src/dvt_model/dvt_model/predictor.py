@@ -296,6 +296,10 @@ class ResidualBlocks:
         self.dropped = 0
         """Unfinished blocks dropped at a gap."""
 
+    def clear(self) -> None:
+        """Drop the unfinished block (the next sample starts a new one)."""
+        self._n = 0
+
     def add(self, stamp: float, residual: list[float]) -> tuple[float, list[float]] | None:
         """Add one sample; the completed block's ``(first stamp, means)`` or ``None``."""
         step = stamp - self._last

@@ -102,6 +102,7 @@ BAD = [
     ("detector.enabled", {"detector.enabled": "yes"}, "true or false"),
     ("detector.sample_rate_hz", {"detector.sample_rate_hz": 0.0}, r"\(0, 100000\]"),
     ("detector.block_s", {"detector.block_s": 2.0}, r"\[0, 1\]"),
+    ("detector.settle_s", {"detector.settle_s": -1.0}, r"\[0, 600\]"),
     ("detector.learn_s", {"detector.learn_s": 0.2}, "at least 100 samples"),
     ("detector.shift_sigma", {"detector.shift_sigma": 21.0}, r"\(0, 20\]"),
     ("detector.false_alarm_period_s", {"detector.false_alarm_period_s": 0.01},
@@ -218,6 +219,7 @@ def test_detector_settings_from_parameters():
     assert setup.block == 10  # 10 ms at 1 kHz
     assert setup.config.sample_rate_hz == pytest.approx(100.0)
     assert setup.config.learn_s == 20.0
+    assert setup.settle_s == 3.0
     assert resolve({}).detector == setup
     assert detector_config({"detector.enabled": False}) is None
     assert detector_config({"detector.block_s": 0.0}).block == 1

@@ -21,7 +21,8 @@ def test_schema_names_and_defaults():
                                       "band_time_constant", "A", "B", "effects", "mode",
                                       "reanchor_period", "gap_reset", "load",
                                       "detector.enabled", "detector.sample_rate_hz",
-                                      "detector.block_s", "detector.learn_s",
+                                      "detector.block_s", "detector.settle_s",
+                                      "detector.learn_s",
                                       "detector.shift_sigma", "detector.false_alarm_period_s",
                                       "detector.max_gap_s", "detector.max_phi"]
     for name, spec in MODEL_PARAMETERS.items():
@@ -99,7 +100,7 @@ def test_change_topics_and_detector_schema():
     cfg = DetectorConfig()
     for f in fields(DetectorConfig):
         if f.name == "names":
-            continue
+            continue  # the contract's SPEED_NAMES
         spec = MODEL_PARAMETERS[f"detector.{f.name}"]
         assert spec.default == getattr(cfg, f.name), f.name
         assert spec.name in DETECTOR_PARAMETERS

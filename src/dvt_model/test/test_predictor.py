@@ -167,3 +167,7 @@ def test_residual_blocks_average_and_drop_at_gaps():
     assert blocks.add(0.203, [6.0, 2.0]) == (0.2, [3.0, 2.0])
     with pytest.raises(SimulationError, match="block size"):
         ResidualBlocks(0)
+    blocks.add(0.3, [1.0, 1.0])
+    blocks.clear()  # an anchor: the unfinished block is dropped
+    assert [blocks.add(0.301 + k * 0.001, [0.0, 0.0]) for k in range(4)][-1] == (
+        pytest.approx(0.301), [0.0, 0.0])

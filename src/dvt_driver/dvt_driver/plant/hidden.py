@@ -457,9 +457,9 @@ class HiddenEffects:
         if self.position_friction:
             names.append("position_friction")
         if self.damping_scale != 1.0:
-            names.append("damping_change")
+            names.append("damping_scale")
         if self.changes:
-            names.append("changes")
+            names.append("plant_changes")
         return names or ["none"]
 
     def to_mapping(self) -> dict[str, Any]:

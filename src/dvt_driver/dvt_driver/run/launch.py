@@ -730,8 +730,8 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                 "-p", f"output:={ring_dir}",
                 "-p", f"topics:=[{','.join(shlex.quote(t) for t in ring_topics)}]",
                 "-p", f"compression:={args.compression}",
-                "-p", f"ring_minutes:={args.ring_minutes:g}",
-                "-p", f"ring_segment_seconds:={args.ring_segment_seconds:g}",
+                "-p", f"ring_minutes:={float(args.ring_minutes)!r}",  # a double, never '1'
+                "-p", f"ring_segment_seconds:={float(args.ring_segment_seconds)!r}",
                 *_ros_params(args.record_param, "--record-param")])
             ring_needed = [t for t in RECORDED_DVT_TOPICS
                            if any(fnmatch.fnmatchcase(t, pat) for pat in ring_topics)

@@ -42,7 +42,15 @@ from dvt_identify.effects.friction import (
     Windage,
 )
 from dvt_identify.effects.periodic import PeriodicDisturbance, member_angle
-from dvt_identify.effects.sensors import MeasurementDelay, SensorGain
+from dvt_identify.effects.position import GravityLoad, Unlisted
+from dvt_identify.effects.sensors import (
+    MeasurementDelay,
+    SensorGain,
+    SensorOffset,
+    SensorQuantisation,
+    SensorSaturation,
+    SignBlindSensor,
+)
 from dvt_identify.errors import DescriptionError
 
 REGISTRY: tuple[type[Effect], ...] = (
@@ -59,6 +67,12 @@ REGISTRY: tuple[type[Effect], ...] = (
     SensorGain,
     PeriodicDisturbance,
     AsymmetricFriction,
+    SignBlindSensor,          # sensor maps on an output (dvt_identify.effects.sensors)
+    SensorSaturation,
+    SensorQuantisation,
+    SensorOffset,
+    GravityLoad,
+    Unlisted,                 # the generic term library (dvt_identify.unlisted)
 )
 """Every effect class; for a name shared by several, the first that accepts a ``where`` wins."""
 
@@ -68,7 +82,8 @@ VOCABULARY: tuple[str, ...] = tuple(dict.fromkeys(cls.name for cls in REGISTRY))
 
 def make_effect(name: str, where: str, state_names: Sequence[str], input_names: Sequence[str],
                 force_unit: str = "", speed_unit: str = "", member: Sequence[float] | None = None,
-                options: dict[str, object] | None = None, suffix: str = "") -> Effect:
+                options: dict[str, object] | None = None, suffix: str = "",
+                output_names: Sequence[str] = ()) -> Effect:
     """Build a candidate effect: the first class of :data:`REGISTRY` named ``name`` that
     accepts ``where`` and the options.
 
@@ -83,6 +98,8 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
             of ``where``).
         options: effect options (see each class).
         suffix: appended to parameter names to keep them unique (e.g. ``_sun_shaft``).
+        output_names: the measured outputs of a structure with hidden states (empty: the
+            states); output effects act on these.
 
     Raises:
         DescriptionError: unknown effect, state or input name, bad option.
@@ -91,7 +108,8 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
                        input_names=tuple(input_names), force_unit=force_unit,
                        speed_unit=speed_unit,
                        member=None if member is None else tuple(float(v) for v in member),
-                       options=dict(options or {}), suffix=suffix)
+                       options=dict(options or {}), suffix=suffix,
+                       output_names=tuple(output_names))
     named = [cls for cls in REGISTRY if cls.name == name]
     if not named:
         raise DescriptionError(f"candidate effect {name!r}: unknown (known: "
@@ -103,7 +121,8 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
 __all__ = [
     "REGISTRY", "VOCABULARY", "Array", "AsymmetricFriction", "Backlash", "BrakeEngagement",
     "BrakeLockup", "BuildContext", "CompliantOutputBacklash", "CoulombFriction", "Effect",
-    "EngagementDeadTime", "MeasurementDelay", "OutputBacklash", "ParamSpec",
-    "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "StribeckFriction",
-    "Term", "Windage", "make_effect", "member_angle",
+    "EngagementDeadTime", "GravityLoad", "MeasurementDelay", "OutputBacklash", "ParamSpec",
+    "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "SensorOffset",
+    "SensorQuantisation", "SensorSaturation", "SignBlindSensor", "StribeckFriction",
+    "Term", "Unlisted", "Windage", "make_effect", "member_angle",
 ]

@@ -112,6 +112,8 @@ class BuildContext:
         member: explicit member vector over the states, or ``None`` (unit vector of ``where``).
         options: effect options from the description.
         suffix: appended to parameter names to keep them unique (e.g. ``_sun_shaft``).
+        output_names: the measured outputs when the structure has hidden states (empty: the
+            outputs are the states).
     """
 
     name: str
@@ -123,6 +125,21 @@ class BuildContext:
     member: tuple[float, ...] | None = None
     options: dict[str, object] = field(default_factory=dict)
     suffix: str = ""
+    output_names: tuple[str, ...] = ()
+
+    def output_index(self, w: str | None = None) -> int:
+        """Index of output ``w`` (default ``where``) among the measured outputs (the states
+        when the structure has no hidden states, ``output_names`` empty).
+
+        Raises:
+            DescriptionError: not an output.
+        """
+        outs = self.output_names or self.state_names
+        w = self.where if w is None else w
+        if w not in outs:
+            raise DescriptionError(f"candidate {self.name}: where {w!r} is not a measured "
+                                   f"output (outputs: {', '.join(outs)})")
+        return outs.index(w)
 
     @property
     def at_state(self) -> bool:
@@ -229,6 +246,10 @@ class Effect:
             input ``brake1..3`` sets with its first parameter (which carries the same name).
         no_term: why the model node cannot represent the effect (``""``: it can,
             see :meth:`model_term`).
+        global_map: a non-local output map (sign-blind, saturation) that the baseline fit can
+            absorb so that no local score sees it: the loop refits it when its
+            :meth:`scoring_evidence` reports ``signature: True`` (a data signature a reader
+            can check), first from the structure's prior values.
 
     Attributes:
         where: human-readable place (member/state, input or output name).
@@ -242,6 +263,7 @@ class Effect:
     state_dependent: ClassVar[bool] = False
     band_parameter: ClassVar[str | None] = None
     no_term: ClassVar[str] = "the model node has no such term"
+    global_map: ClassVar[bool] = False
     where: str = ""
     params: tuple[ParamSpec, ...] = ()
     member: Array | None = None

@@ -17,6 +17,7 @@ from dvt_identify.effects.base import (
     SegmentView,
     numbers_option,
 )
+from dvt_identify.effects.position import angle_of, cell_mean_trig, mesh_orders
 from dvt_identify.errors import DescriptionError
 
 
@@ -33,7 +34,12 @@ class PeriodicDisturbance(Effect):
     (``theta = 2 pi t``, ``k`` in Hz) when the option ``clock`` is ``time``.
 
     Parameters ``a``, ``b`` (force unit) and ``order`` (>= 0, fixed during a fit; the scorer
-    scans the listed ``orders``, a required option). The model node has no periodic term.
+    scans the listed ``orders``). The option ``mesh_orders: true`` adds each stage's sun teeth of
+    the parameter set ``params`` (default ``physical``; :mod:`dvt_model.params`) to the orders:
+    the mesh orders per sun-shaft revolution. ``orders`` or ``mesh_orders`` is required. The
+    force held over a step is its mean over the step's angle interval
+    (:func:`dvt_identify.effects.position.cell_mean_trig`: a ripple faster than the step does
+    not alias). The model node has no periodic term.
     """
 
     name = "periodic_disturbance"
@@ -41,16 +47,21 @@ class PeriodicDisturbance(Effect):
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
-        if not ctx.options.get("orders"):
+        orders = ctx.numbers("orders")
+        if ctx.options.get("mesh_orders"):
+            orders = list(dict.fromkeys(
+                [*orders, *mesh_orders(str(ctx.options.get("params", "physical")))]))
+        if not orders:
             raise DescriptionError(f"candidate periodic_disturbance@{ctx.where}: needs 'orders' "
-                                   "(per member revolution/unit, or Hz with clock: time)")
-        k0 = ctx.numbers("orders")[0]
+                                   "(per member revolution/unit, or Hz with clock: time) or "
+                                   "mesh_orders: true")
+        k0 = orders[0]
         fu, sfx, inf = ctx.force_unit, ctx.suffix, math.inf
         params = (ParamSpec("a" + sfx, 0.0, -inf, inf, fu),
                   ParamSpec("b" + sfx, 0.0, -inf, inf, fu),
                   ParamSpec("order" + sfx, k0, 0.0, inf, "1", null=k0))
         return cls(where=ctx.where, params=params, member=ctx.member_vector(),
-                   options=dict(ctx.options))
+                   options={**ctx.options, "orders": orders})
 
     def _orders(self) -> list[float]:
         return numbers_option(self.options, "orders", [float(self.params[2].initial)],
@@ -59,12 +70,12 @@ class PeriodicDisturbance(Effect):
     def _phase(self, seg: SegmentView) -> Array:
         if self.options.get("clock") == "time":
             return np.asarray(2.0 * math.pi * seg.dt * np.arange(seg.u.shape[0]))
-        return member_angle(seg, self.require_member())
+        return angle_of(seg, self.require_member())[0]
 
     def exogenous_force(self, p: Array, seg: SegmentView) -> Array | None:
         a, b, k = float(p[0]), float(p[1]), float(p[2])
-        ph = k * self._phase(seg)
-        return np.asarray(a * np.cos(ph) + b * np.sin(ph))
+        c, s = cell_mean_trig(self._phase(seg), k)
+        return np.asarray(a * c + b * s)
 
     def variants(self, seg: SegmentView) -> list[tuple[str, dict[str, float]]]:
         name = self.params[2].name
