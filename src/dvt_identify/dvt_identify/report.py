@@ -703,6 +703,10 @@ def plot_spectrum(result: IdentificationResult, out: Path,
     return paths
 
 
+_MAX_LABEL = 44
+"""Longest candidate label drawn in full on the candidates chart [characters]."""
+
+
 def plot_candidates(result: IdentificationResult, out: Path,
                     save: _PngWriter | None = None) -> Path | None:
     """Projected scores (R^2, %) of every candidate per round, accepted ones highlighted."""
@@ -715,17 +719,21 @@ def plot_candidates(result: IdentificationResult, out: Path,
     fig, axes = plt.subplots(len(result.rounds), 1,
                              figsize=(9, 2.2 + 0.35 * longest * len(result.rounds)))
     axes = np.atleast_1d(axes)
+    def short(label: str) -> str:  # long labels would squeeze the bars out of the figure
+        return label if len(label) <= _MAX_LABEL else label[: _MAX_LABEL - 1] + "…"
+
+    top_val = max((100 * s.r2 for r in result.rounds for s in r), default=1.0)
     for i, (ax, rnd) in enumerate(zip(axes, result.rounds, strict=True)):
-        labels = [s.label for s in rnd][::-1]
+        labels = [short(s.label) for s in rnd][::-1]
         vals = [100 * s.r2 for s in rnd][::-1]
         colors = ["tab:green" if (i + 1, s.label) in accepted else "0.6" for s in rnd][::-1]
         ax.barh(labels, vals, color=colors)
-        ax.set_xscale("symlog", linthresh=0.1)
-        _plain_log_labels(ax, x=True)
+        # a linear axis: a 0.005 % candidate draws as the sliver it is
+        ax.set_xlim(0.0, max(1.0, 1.05 * top_val))
         _title(ax, f"round {i + 1}: residual SS explained after projection [%] "
                "(green = accepted)")
-    width = max((len(s.label) for r in result.rounds for s in r), default=10)
-    _margins(fig, left=0.4 + 0.085 * width, top=0.35, bottom=0.4, hspace=0.55)
+    width = max((len(short(s.label)) for r in result.rounds for s in r), default=10)
+    _margins(fig, left=min(0.4 + 0.085 * width, 4.5), top=0.35, bottom=0.4, hspace=0.55)
     return save(fig, out / "candidates.png")
 
 

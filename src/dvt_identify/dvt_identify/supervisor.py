@@ -84,7 +84,7 @@ class SupervisorConfig:
     validation_s: float = 15.0
     max_estimation_s: float = 300.0
     alpha: float = 0.05
-    min_relative_gain: float = 0.0
+    min_relative_gain: float = 0.1
     fit_timeout_s: float = 600.0
     push_timeout_s: float = 10.0
     watch_s: float = 60.0

@@ -103,7 +103,7 @@ def test_step_means_of_cos_sin_do_not_alias() -> None:
     np.testing.assert_allclose(c[:-1], exact, atol=1e-12)
     assert abs(s[0] - (1 - math.cos(0.02)) / 0.02) < 1e-12
     # a ripple of many periods per step averages out instead of aliasing to a slow wave
-    fast = np.arange(100) * (2 * math.pi + 0.01)
+    fast = np.arange(100, dtype=np.float64) * (2 * math.pi + 0.01)
     cf, _ = cell_mean_trig(fast, 1.0)
     assert np.max(np.abs(cf[:-1])) < 0.01
     # a member at rest: the point value
@@ -118,7 +118,10 @@ def test_gravity_load_build_force_and_derived_figures() -> None:
     assert isinstance(eff, GravityLoad)
     assert [s.name for s in eff.params] == ["gravity_a", "gravity_b", "reduction"]
     assert eff.gain_names() == ("gravity_a", "gravity_b")
-    assert eff.fixed_names() == ("reduction",)
+    # a scanned reduction is fitted; a known one is held fixed
+    assert eff.fixed_names() == ()
+    known = make_effect("gravity_load", "v", STATES, INPUTS, options={"reduction": 20})
+    assert known.fixed_names() == ("reduction",)
     view = SegmentView(0.001, np.zeros((3000, 1)), np.full((3000, 1), 4.0))
     assert [v[0] for v in eff.variants(view)] == ["reduction=10", "reduction=20"]
     f = eff.exogenous_force(np.array([0.0, -2.0, 20.0]), view)
@@ -143,9 +146,10 @@ def test_gravity_load_is_ranked_first_with_the_right_reduction() -> None:
     grav = make_effect("gravity_load", "v", STATES, INPUTS, "N", "rad/s",
                        options={"reductions": [20]})
     seg = synthetic(grav, [3.0, -6.0, 20.0])
-    cands = [make_effect(n, "v", STATES, INPUTS, "N", "rad/s", options=o) for n, o in (
+    entries: list[tuple[str, dict[str, object]]] = [
         ("coulomb_friction", {}), ("windage", {}), ("periodic_disturbance", {"orders": [1, 2]}),
-        ("gravity_load", {"reductions": [5, 20, 80]}))]
+        ("gravity_load", {"reductions": [5, 20, 80]})]
+    cands = [make_effect(n, "v", STATES, INPUTS, "N", "rad/s", options=o) for n, o in entries]
     fit = OEFit(OEModel(structure()), starts=1).fit([seg])
     scores = score_candidates(fit, [seg], cands)
     assert scores[0].effect.name == "gravity_load", [(s.label, s.r2) for s in scores]

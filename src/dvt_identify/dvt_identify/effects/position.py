@@ -9,7 +9,7 @@ With an integrated angle a phase is relative to the first sample.
 - :class:`GravityLoad` (``gravity_load``): a torque ``a cos(theta / N) + b sin(theta / N)`` on
   the member (carrier 3: an arm behind an output stage of reduction ``N``), amplitude
   ``hypot(a, b)`` and phase ``atan2(-b, a)`` (``A cos(theta / N + phase)``). ``N`` is a
-  description option (``reduction``) or scanned (``reductions``) and held fixed in the fit.
+  description option (``reduction``, held fixed) or scanned (``reductions``) and then fitted.
 - :class:`Unlisted` (``unlisted``): a sum of library terms ``sum_j k_j phi_j`` on one member,
   each ``phi_j = S(s) T(k theta) u_i`` (speed factor ``sign(s)``, ``|s| s``, ``s^3`` or 1, angle
   factor ``cos``/``sin`` of an order or 1, an input or 1). Built from a description entry it holds
@@ -75,8 +75,9 @@ class GravityLoad(Effect):
     """Gravity (or an unbalance) behind an output stage: ``a cos(theta / N) + b sin(theta / N)``
     on the member, ``theta`` its angle, ``N`` the stage's reduction.
 
-    Options: ``reduction`` (known ``N``) or ``reductions`` (a list scanned by the scorer; the
-    first is the start). Parameters ``a``, ``b`` [force unit], ``N`` [1] (fixed in the fit).
+    Options: ``reduction`` (known ``N``, fixed in the fit) or ``reductions`` (a list scanned
+    by the scorer; the refit starts from the best and estimates ``N``). Parameters ``a``, ``b``
+    [force unit], ``N`` [1].
     """
 
     name = "gravity_load"
@@ -113,8 +114,9 @@ class GravityLoad(Effect):
         return (self.params[0].name, self.params[1].name)
 
     def fixed_names(self) -> tuple[str, ...]:
-        """The reduction is held fixed while fitting (known or scanned by the scorer)."""
-        return (self.params[2].name,)
+        """A known reduction (one value) is held fixed while fitting; a scanned one starts at
+        the scorer's best value and is fitted (the scan only needs to land in its basin)."""
+        return (self.params[2].name,) if len(self._reductions()) == 1 else ()
 
     def inadmissible(self, p: Array) -> str | None:
         bad = super().inadmissible(p)
