@@ -113,6 +113,8 @@ def _applied(truth: Path) -> list[dict[str, Any]]:
     return list(doc.get("changes_applied") or [])
 
 
+@pytest.mark.flaky(reruns=2)  # real-time chain on a shared 2-core machine: a scheduling hiccup
+# can delay one keep-alive or message; a real fault fails all three runs
 def test_friction_step_is_detected(procs: Procs, rclpy_context: Any, tmp_path: Path) -> None:
     truth = tmp_path / "truth.yaml"
     link = tmp_path / "plant.tty"

@@ -109,6 +109,8 @@ def _stamp(msg: dict[str, Any]) -> int:
     return int(s["sec"]) * 1_000_000_000 + int(s["nsec"])
 
 
+@pytest.mark.flaky(reruns=2)  # real-time chain on a shared 2-core machine: a scheduling hiccup
+# can delay one keep-alive or message; a real fault fails all three runs
 def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) -> None:
     import rclpy
     from rclpy.experimental import EventsExecutor

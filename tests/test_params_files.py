@@ -59,6 +59,7 @@ def test_every_node_has_an_example_params_file() -> None:
         assert data[node]["ros__parameters"], fname
 
 
+@pytest.mark.flaky(reruns=2)  # node start-up under load
 @pytest.mark.parametrize(("exe", "node", "fname", "overrides"), CASES,
                          ids=[c[1] for c in CASES])
 def test_node_takes_its_params_file(exe: str, node: str, fname: str,
@@ -92,7 +93,7 @@ def test_node_takes_its_params_file(exe: str, node: str, fname: str,
 
         wait_for(ready, 30, f"{node}'s parameter services")
         future = client.get_parameters(list(expected))
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 30  # a node busy starting up (numba kernels) answers late
         while not future.done():
             assert time.monotonic() < deadline, f"{node} did not answer get_parameters"
             ex.spin_once(timeout_sec=0.05)
