@@ -377,9 +377,15 @@ class IdentifyNode(Node):
             self.episode_dirs[episode] = d
         return d
 
+    def _require_supervisor(self) -> sv.Supervisor:
+        """The supervisor; only its own actions call this, so it exists unless misused."""
+        if self.supervisor is None:
+            raise DvtIdentifyError("supervisor action without a supervisor "
+                                   "(parameter supervisor.enabled is false)")
+        return self.supervisor
+
     def _request_snapshot(self, req: sv.RequestFit) -> None:
-        sup = self.supervisor
-        assert sup is not None
+        sup = self._require_supervisor()
         now = self._now()
         work = self._episode_dir(req.episode)
         if self.pub_snapshot.get_subscription_count() == 0:
@@ -442,8 +448,7 @@ class IdentifyNode(Node):
         result = sv.FitOutcome(outcome.new_errors, outcome.current_errors,
                                outcome.new_parameters, outcome.current_parameters, summary,
                                outcome.error)
-        sup = self.supervisor
-        assert sup is not None
+        sup = self._require_supervisor()
         self._done.put(lambda now: sup.fit_done(result, now))
 
     def _get_model_parameters(self) -> dict[str, Any]:
@@ -465,8 +470,7 @@ class IdentifyNode(Node):
             rosutil_parameter(n, v)).value) for n, v in zip(names, values, strict=True)}
 
     def _start_push(self, values: Mapping[str, Any], rollback: bool) -> None:
-        sup = self.supervisor
-        assert sup is not None
+        sup = self._require_supervisor()
 
         def work() -> None:
             try:  # the supervisor's push_timeout_s bounds the wait (a busy model node

@@ -156,18 +156,17 @@ def _node_class() -> type:
                    "latched": rosutil.LATCHED_QOS, "diag": rosutil.qos(DIAGNOSTICS_QOS)}
             from dvt_model.contract import COMMAND_TOPICS, DIAGNOSTICS, IDENTIFY_RESULT
 
-            for spec in self.bridge.sources:
-                assert spec.source is not None
+            for source, spec in self.bridge.by_source.items():
                 module, name = _ROS_TYPES[spec.schema_name]
                 cls = getattr(importlib.import_module(module), name)
                 if spec.decimated:
-                    self.create_subscription(cls, spec.source, self._raw_cb(spec.source, cls),
+                    self.create_subscription(cls, source, self._raw_cb(source, cls),
                                              qos["sensor"], raw=True)
                     continue
-                profile = (qos["diag"] if spec.source == DIAGNOSTICS else
-                           qos["latched"] if spec.source == IDENTIFY_RESULT else
-                           qos["command"] if spec.source in COMMAND_TOPICS else qos["sensor"])
-                self.create_subscription(cls, spec.source, self._msg_cb(spec.source), profile)
+                profile = (qos["diag"] if source == DIAGNOSTICS else
+                           qos["latched"] if source == IDENTIFY_RESULT else
+                           qos["command"] if source in COMMAND_TOPICS else qos["sensor"])
+                self.create_subscription(cls, source, self._msg_cb(source), profile)
             self.create_timer(0.1, self._resend_latched)
             self.get_logger().info(
                 f"serving {len(CHANNELS)} channels on ws://{self.settings.host}:{self.port} "

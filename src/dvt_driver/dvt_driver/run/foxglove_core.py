@@ -720,6 +720,11 @@ class Bridge:
         """The channels forwarded from ROS topics."""
         return tuple(self._specs.values())
 
+    @property
+    def by_source(self) -> dict[str, ChannelSpec]:
+        """The channels forwarded from ROS topics, by source topic."""
+        return dict(self._specs)
+
     def wants(self, topic: str, stamp: int) -> bool:
         """Whether a sample of ``topic`` stamped ``stamp`` [ns] is forwarded (decimation)."""
         spec = self._specs.get(topic)

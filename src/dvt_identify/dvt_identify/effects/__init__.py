@@ -41,7 +41,7 @@ from dvt_identify.effects.friction import (
     StribeckFriction,
     Windage,
 )
-from dvt_identify.effects.periodic import PeriodicDisturbance, member_angle
+from dvt_identify.effects.periodic import PeriodicDisturbance
 from dvt_identify.effects.position import GravityLoad, Unlisted
 from dvt_identify.effects.sensors import (
     MeasurementDelay,
@@ -124,5 +124,5 @@ __all__ = [
     "EngagementDeadTime", "GravityLoad", "MeasurementDelay", "OutputBacklash", "ParamSpec",
     "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "SensorOffset",
     "SensorQuantisation", "SensorSaturation", "SignBlindSensor", "StribeckFriction",
-    "Term", "Unlisted", "Windage", "make_effect", "member_angle",
+    "Term", "Unlisted", "Windage", "make_effect",
 ]

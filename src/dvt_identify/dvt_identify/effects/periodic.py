@@ -6,7 +6,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.integrate import cumulative_trapezoid
 
 from dvt_identify.effects.base import (
     Array,
@@ -19,12 +18,6 @@ from dvt_identify.effects.base import (
 )
 from dvt_identify.effects.position import angle_of, cell_mean_trig, mesh_orders
 from dvt_identify.errors import DescriptionError
-
-
-def member_angle(seg: SegmentView, member: Array) -> Array:
-    """Measured member angle ``int c.y dt`` from 0 [member speed unit x s], shape (N,)."""
-    s = seg.y @ member
-    return np.asarray(cumulative_trapezoid(s, dx=seg.dt, initial=0.0))
 
 
 @dataclass
