@@ -33,6 +33,7 @@ from std_srvs.srv import Trigger
 
 from conftest import wait_for
 from dvt_model import contract, rosutil
+from dvt_model.contract import CURRENTS, DIAGNOSTICS, JOINT_STATES
 from dvt_model.dynamics import rigid_model
 from dvt_model.params import load_parameters
 
@@ -59,11 +60,11 @@ class Harness:
         self.diag_stamps: list[tuple[int, dict[str, str]]] = []  # header stamp [ns], values
         self.last_publish = 0  # system time [ns] of the last motor set-point sent by drive()
         n = self.node
-        n.create_subscription(JointState, rosutil.JOINT_STATES, self._on_js, rosutil.SENSOR_QOS,
+        n.create_subscription(JointState, JOINT_STATES, self._on_js, rosutil.SENSOR_QOS,
                               raw=True)
-        n.create_subscription(JointState, rosutil.CURRENTS, self._on_cur, rosutil.SENSOR_QOS,
+        n.create_subscription(JointState, CURRENTS, self._on_cur, rosutil.SENSOR_QOS,
                               raw=True)
-        n.create_subscription(DiagnosticArray, rosutil.DIAGNOSTICS, self._on_diag, 50)
+        n.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, 50)
         q = rosutil.COMMAND_QOS
         self.pub_current = n.create_publisher(Float64, contract.CMD_MOTOR_CURRENT, q)
         self.pub_speed = n.create_publisher(Float64, contract.CMD_SUN_SPEED, q)
@@ -190,7 +191,7 @@ class Harness:
     def wait_samples(self, count: int, timeout: float = 20.0) -> None:
         start = len(self.js)
         self.spin_until(lambda: len(self.js) >= start + count, timeout,
-                        f"{count} samples on {rosutil.JOINT_STATES}")
+                        f"{count} samples on {JOINT_STATES}")
 
 
 @pytest.fixture

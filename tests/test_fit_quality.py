@@ -26,7 +26,7 @@ def _cut(segs, seconds):
     out = []
     for s in segs:
         n = min(s.n, round(seconds / s.dt))
-        out.append(replace(s, t=s.t[:n], u=s.u[:n], y=s.y[:n]))
+        out.append(s.rows(0, n))
     return out
 
 

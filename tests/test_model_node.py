@@ -19,7 +19,16 @@ from sensor_msgs.msg import JointState
 
 from conftest import wait_for
 from dvt_model import rosutil
-from dvt_model.contract import MODEL_NODE
+from dvt_model.contract import (
+    CURRENT_NAMES,
+    CURRENTS,
+    DIAGNOSTICS,
+    JOINT_STATES,
+    MODEL_JOINT_STATES,
+    MODEL_NODE,
+    MODEL_RESIDUAL,
+    SPEED_NAMES,
+)
 from dvt_model.hybrid import HybridModel
 from dvt_model.params import load_parameters
 from dvt_model.recording import write_run
@@ -51,9 +60,9 @@ class _Listener:
         self.exe.add_node(self.node)
         self.residuals: list[tuple[int, list[float]]] = []
         self.predicted = 0
-        self.node.create_subscription(JointState, rosutil.MODEL_RESIDUAL, self._res,
+        self.node.create_subscription(JointState, MODEL_RESIDUAL, self._res,
                                       rosutil.SENSOR_QOS)
-        self.node.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, self._pred,
+        self.node.create_subscription(JointState, MODEL_JOINT_STATES, self._pred,
                                       rosutil.SENSOR_QOS)
 
     def _res(self, msg):
@@ -107,7 +116,7 @@ def test_replayed_bag_residual_at_noise_level(procs, rclpy_context, tmp_path):
     bag = _simulated_bag(tmp_path / "run")
     listener = _Listener(rclpy_context)
     node = procs.start("dvt_model_node", "--ros-args", "-p", "params:=physical")
-    listener.spin_until(lambda: listener.node.count_publishers(rosutil.MODEL_RESIDUAL) > 0,
+    listener.spin_until(lambda: listener.node.count_publishers(MODEL_RESIDUAL) > 0,
                         20.0, "model node publishers")
     replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")
     listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")
@@ -198,8 +207,8 @@ class _Feeder:
     """Publishes measured sample pairs at ~200 Hz from a thread (stamps strictly increasing)."""
 
     def __init__(self, node):
-        self.pub_js = node.create_publisher(JointState, rosutil.JOINT_STATES, rosutil.SENSOR_QOS)
-        self.pub_cur = node.create_publisher(JointState, rosutil.CURRENTS, rosutil.SENSOR_QOS)
+        self.pub_js = node.create_publisher(JointState, JOINT_STATES, rosutil.SENSOR_QOS)
+        self.pub_cur = node.create_publisher(JointState, CURRENTS, rosutil.SENSOR_QOS)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
 
@@ -210,9 +219,9 @@ class _Feeder:
             stamp = base + k * 1_000_000
             t = k * 1e-3
             self.pub_js.publish(rosutil.joint_state(
-                stamp, rosutil.SPEED_NAMES, velocity=(100.0 + 5.0 * math.sin(t), 20.0)))
+                stamp, SPEED_NAMES, velocity=(100.0 + 5.0 * math.sin(t), 20.0)))
             self.pub_cur.publish(rosutil.joint_state(
-                stamp, rosutil.CURRENT_NAMES, effort=(4.0, 0.0, 0.0, 0.0)))
+                stamp, CURRENT_NAMES, effort=(4.0, 0.0, 0.0, 0.0)))
             k += 1
 
 
@@ -231,9 +240,9 @@ def test_bad_settings_refused_and_predictions_stay_finite(procs, rclpy_context):
                 diag.update({kv.key: kv.value for kv in st.values})
                 diag["level"] = str(st.level[0] if isinstance(st.level, bytes) else st.level)
 
-    listener.node.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, on_pred,
+    listener.node.create_subscription(JointState, MODEL_JOINT_STATES, on_pred,
                                       rosutil.SENSOR_QOS)
-    listener.node.create_subscription(DiagnosticArray, rosutil.DIAGNOSTICS, on_diag, 10)
+    listener.node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diag, 10)
     node = procs.start("dvt_model_node")
     feeder = _Feeder(listener.node)
     listener.spin_until(lambda: feeder.pub_js.get_subscription_count() > 0
@@ -323,8 +332,8 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
     anchor = ["-p", "mode:=reanchor", "-p", "reanchor_period:=0.5"]
     procs.start("dvt_model_node", "--ros-args", "-p", "load:=arm-payload", *anchor)
     procs.start("dvt_model_node", "--ros-args", *anchor, "-r", "__node:=dvt_model_bare",
-                "-r", f"{rosutil.MODEL_RESIDUAL}:=/dvt/model_bare/residual",
-                "-r", f"{rosutil.MODEL_JOINT_STATES}:=/dvt/model_bare/joint_states")
+                "-r", f"{MODEL_RESIDUAL}:=/dvt/model_bare/residual",
+                "-r", f"{MODEL_JOINT_STATES}:=/dvt/model_bare/joint_states")
     node = rclpy.create_node("test_positions", context=rclpy_context)
     exe = SingleThreadedExecutor(context=rclpy_context)
     exe.add_node(node)
@@ -338,11 +347,11 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
             if len(msg.position):
                 got[key].append((rosutil.stamp_to_ns(msg.header.stamp), list(msg.position)))
         return cb
-    node.create_subscription(JointState, rosutil.MODEL_RESIDUAL, keep("known"),
+    node.create_subscription(JointState, MODEL_RESIDUAL, keep("known"),
                              rosutil.SENSOR_QOS)
     node.create_subscription(JointState, "/dvt/model_bare/residual", keep("bare"),
                              rosutil.SENSOR_QOS)
-    node.create_subscription(JointState, rosutil.MODEL_JOINT_STATES, keep("pred"),
+    node.create_subscription(JointState, MODEL_JOINT_STATES, keep("pred"),
                              rosutil.SENSOR_QOS)
     pub_speed = node.create_publisher(Float64, contract.CMD_SUN_SPEED, rosutil.COMMAND_QOS)
     pub_brakes = node.create_publisher(JointState, contract.CMD_BRAKE_CURRENTS,
@@ -403,12 +412,12 @@ def test_change_detector_wiring(procs, rclpy_context, tmp_path):
     listener = _Listener(rclpy_context)
     statuses: list[dict[str, str]] = []
     listener.node.create_subscription(
-        DiagnosticArray, rosutil.DIAGNOSTICS,
+        DiagnosticArray, DIAGNOSTICS,
         lambda m: statuses.extend({kv.key: kv.value for kv in st.values}
                                   for st in m.status if st.name == DETECTOR_STATUS), 50)
     node = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=1.0",
                        "-p", "detector.settle_s:=0.2")
-    listener.spin_until(lambda: listener.node.count_publishers(rosutil.MODEL_RESIDUAL) > 0,
+    listener.spin_until(lambda: listener.node.count_publishers(MODEL_RESIDUAL) > 0,
                         20.0, "model node publishers")
     replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")
     listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -142,7 +142,7 @@ def head(seg: Segment, n: int) -> Segment:
     """The first ``n`` samples of ``seg`` (all of it when ``n >= seg.n``)."""
     if n >= seg.n:
         return seg
-    return replace(seg, t=seg.t[:n], u=seg.u[:n], y=seg.y[:n])
+    return seg.rows(0, n)
 
 
 def window_simulator(model: Simulator, theta: Array, seg: Segment, output: int) -> WindowSim:

@@ -1,7 +1,8 @@
 """``dvt-identify``: fit, trace and report from bags.
 
     dvt-identify BAG... --validate BAG... --out DIR [--description FILE_OR_NAME] [--no-augment]
-                 [--test BAG...] [--select-on validation|holdout] [--init-window N] [--mcap]
+                 [--test BAG...] [--select-on validation|holdout|cv] [--init-window N]
+                 [--mcap]
     dvt-identify BAG... --check [--out DIR] [--description FILE_OR_NAME]
 
 Runs the identification pipeline (:func:`dvt_identify.pipeline.run`): reads the estimation and
@@ -10,15 +11,20 @@ them, fits the baseline output-error model, runs the augment loop and writes
 ``DIR/report.json``, ``DIR/report.md``, PNG plots and the series (``DIR/series.npz``,
 ``DIR/series/*.csv``, with ``--mcap`` bags; :mod:`dvt_identify.series`). The validation bags
 choose the effects (a selection figure); ``--test`` bags are read after every choice and give
-a figure that took no part in any (``--select-on holdout`` chooses on the held-out end of the
-estimation bags instead and treats the validation bags as test data). Progress goes to
-stderr; the last line on stdout summarises the result.
+a figure that took no part in any. ``--select-on holdout`` chooses on the held-out end of the
+estimation bags instead, ``--select-on cv`` by leave-one-bag-out cross-validation across the
+estimation bags (at least two; each bag simulated by the model fitted on the others, the
+pooled out-of-fold errors in the acceptance test, the accepted model fitted on all of them);
+both treat the ``--validate`` bags, if any, as test data. Progress goes to stderr; the last
+line on stdout summarises the result. Progress is one line rewritten in place when stderr is a
+terminal (the baseline, each accepted effect and the report stay as lines) and nothing when it
+is not (a pipe, a log); data warnings and errors are always shown.
 
 Exit status (as ``dvt-bag``): 0 success; 1 bad data or files (a bag that cannot be read or
 checked, a bad description, a failed fit), with one line ``dvt-identify: error: <reason>`` on
 stderr; 2 bad usage (unknown option, missing ``--validate``/``--out``), argparse's usage
-message. ``dvt-bag recover PATH`` is suggested only for a bag directory (or ``.mcap`` file)
-whose MCAP cannot be read.
+message (also ``--select-on cv`` with fewer than two estimation bags). ``dvt-bag recover
+PATH`` is suggested only for a bag directory (or ``.mcap`` file) whose MCAP cannot be read.
 
 ``--check`` only asks whether the estimation bags are enough (no fit,
 :mod:`dvt_identify.identifiability`): per parameter of the baseline model whether the recording
@@ -30,40 +36,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from dvt_identify.description import DEFAULT_DESCRIPTION
 from dvt_identify.errors import DvtIdentifyError
-from dvt_identify.pipeline import check_recording, run
+from dvt_identify.pipeline import TerminalProgress, check_recording, run
+from dvt_model.progress import ProgressLine
 
 EXIT_DATA = 1
 """Exit status for bad data or files (as ``dvt-bag``)."""
 EXIT_USAGE = 2
 """Exit status for bad usage (argparse's)."""
-_RECOVER = re.compile(r" \((?:if the recording was killed, try|the recording was probably "
-                      r"killed; run) `dvt-bag recover (?P<path>[^`]+)`[^)]*\)")
-
-
-def _has_mcap(path: Path) -> bool:
-    """``path`` is a ``.mcap`` file or a directory holding one (what ``dvt-bag recover``
-    rebuilds)."""
-    if path.is_file():
-        return path.suffix == ".mcap"
-    return path.is_dir() and any(path.glob("*.mcap"))
-
-
 def error_line(exc: BaseException) -> str:
-    """The one error line for ``exc``: its first line, without a ``dvt-bag recover``
-    suggestion for a path that holds no MCAP (a README is not a killed recording)."""
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-
-    def drop(m: re.Match[str]) -> str:
-        return m.group(0) if _has_mcap(Path(m.group("path"))) else " (not a bag directory)"
-
-    return _RECOVER.sub(drop, text)
+    """The one error line for ``exc``: its first line (the recording layer words the
+    ``dvt-bag recover`` hint, :func:`dvt_model.recording.layout.recover_hint`)."""
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -107,10 +96,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--test", nargs="+", metavar="BAG", default=[],
                     help="test bag directories: read only after every choice is made; their "
                          "figures took no part in fitting or choosing effects")
-    ap.add_argument("--select-on", choices=("validation", "holdout"), default="validation",
-                    help="data that choose the effects: the validation bags (default), or the "
-                         "held-out last 30 %% of each estimation bag (the --validate bags are "
-                         "then test data)")
+    ap.add_argument("--select-on", choices=("validation", "holdout", "cv"),
+                    default="validation",
+                    help="data that choose the effects: the validation bags (default), the "
+                         "held-out last 30 %% of each estimation bag (holdout), or "
+                         "leave-one-bag-out cross-validation across the estimation bags (cv, "
+                         "at least 2); with holdout and cv the --validate bags are test data")
     ap.add_argument("--init-window", type=int, default=0, metavar="N",
                     help="test initial states from the first N samples only (benchmark "
                          "style; figures on the rest)")
@@ -118,23 +109,33 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="also write the series as MCAP bags with the model topics (Foxglove)")
     args = ap.parse_args(argv)
     if not args.check and (not args.out or (not args.validate
-                                            and args.select_on != "holdout")):
+                                            and args.select_on == "validation")):
         ap.error("--validate and --out are required (unless --check; --validate is optional "
-                 "with --select-on holdout)")
+                 "with --select-on holdout or cv)")
+    if not args.check and args.select_on == "cv" and len(args.bags) < 2:
+        ap.error(f"--select-on cv: leave-one-bag-out cross-validation needs at least 2 "
+                 f"estimation bags, got {len(args.bags)}")
     try:
         if args.check:
             return _check(args)
-        result = run(args.bags, args.validate or [], args.out, args.description,
-                     augment=not args.no_augment, starts=args.starts,
-                     fit_decimate=args.fit_decimate, quiet=args.quiet,
-                     plots=not args.no_plots, test_bags=args.test,
-                     select_on=args.select_on, init_window=args.init_window, mcap=args.mcap)
+        # progress: one line on a terminal, nothing when stderr is not one (warnings always)
+        with ProgressLine.stderr("[dvt-identify] ") as line:
+            result = run(args.bags, args.validate or [], args.out, args.description,
+                         augment=not args.no_augment, starts=args.starts,
+                         fit_decimate=args.fit_decimate, quiet=args.quiet,
+                         progress=TerminalProgress(line), plots=not args.no_plots,
+                         test_bags=args.test, select_on=args.select_on,
+                         init_window=args.init_window, mcap=args.mcap)
     except (DvtIdentifyError, OSError) as exc:
         print(f"dvt-identify: error: {error_line(exc)}", file=sys.stderr)
         return EXIT_DATA
     fin = result.final
     acc = [d.score.label for d in result.accepted] or ["none"]
-    print("validation fit: " + ", ".join(
+    sel = {"validation": "validation fit (selection)",
+           "holdout": "held-out fit (selection)",
+           "cv": "out-of-fold fit (selection, leave-one-bag-out)"}.get(
+               str(getattr(result, "selection", "validation")), "validation fit (selection)")
+    print(f"{sel}: " + ", ".join(
         f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(fin.val.output_names,
                                                           result.baseline.val.fit_percent,
                                                           fin.val.fit_percent, strict=True))

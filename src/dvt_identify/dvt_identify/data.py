@@ -17,8 +17,16 @@ with its own initial state); a piece shorter than ``min_samples`` is dropped wit
 an error naming the splits. A killed recording (unfinished MCAP file) is read up to its last
 complete chunk (:func:`dvt_model.recording.read_topics`), with a :class:`DataWarning`.
 
+Measured angles: when the outputs' topics carry ``position``, each output that is the
+``velocity`` of a joint gets the recorded ``position`` of the same joint (same topic, same
+scale) as its angle (:attr:`Segment.angles`); the position-dependent effects then take member
+angles from it instead of integrating the speed from the first sample
+(:func:`dvt_identify.effects.position.angle_of`). A recording without positions (or with a
+non-finite position) gives no angles (``None``).
+
 Pre-processing: low-pass Butterworth on inputs and outputs alike (like MATLAB ``idfilt``; optionally
-zero-phase) and decimation with an anti-alias filter.
+zero-phase; the angles with the same filter) and decimation with an anti-alias filter (the angles
+are sampled at the kept samples).
 """
 
 from __future__ import annotations
@@ -105,6 +113,14 @@ class Segment:
         input_names, output_names: names, lengths nu and ny.
         dt: sample time [s].
         notes: what pre-processing did (filled gaps, filtering, decimation).
+        angles: measured angles, shape (N, ny), or ``None``: column ``j`` is the recorded
+            ``position`` of the joint whose ``velocity`` output ``j`` is (in that output's
+            scale, e.g. rad for rad/s), 0 for an output that is not a joint's velocity; finite.
+            ``None`` when the recording has no positions (the effects then integrate the
+            measured speed). Rebuild a segment over some of its samples with :meth:`rows`,
+            which keeps them aligned; a ``dataclasses.replace`` of ``t``/``u``/``y`` alone with
+            another number of samples drops them (with a note), it cannot know which rows
+            are kept.
     """
 
     name: str
@@ -115,6 +131,7 @@ class Segment:
     output_names: tuple[str, ...]
     dt: float
     notes: tuple[str, ...] = field(default_factory=tuple)
+    angles: Array | None = None
 
     def __post_init__(self) -> None:
         n = self.t.shape[0]
@@ -126,16 +143,57 @@ class Segment:
         if self.y.shape != (n, len(self.output_names)):
             raise DataError(f"{self.name}: y: expected shape {(n, len(self.output_names))}, "
                             f"got {self.y.shape}")
+        a = self.angles
+        if a is None:
+            return
+        ny = len(self.output_names)
+        if not isinstance(a, np.ndarray) or a.ndim != 2 or a.shape[1] != ny:
+            raise DataError(f"{self.name}: angles: expected shape (N, {ny}) (one column per "
+                            f"output), got {np.shape(a)}")
+        if a.shape[0] != n:  # rebuilt by replace() on t/u/y only: the rows kept are unknown
+            object.__setattr__(self, "angles", None)
+            object.__setattr__(self, "notes", (
+                *self.notes, f"measured angles dropped: the segment was rebuilt with {n} of "
+                f"{a.shape[0]} samples without them (member angles integrate the speed)"))
+            return
+        if not np.all(np.isfinite(a)):
+            bad = np.argwhere(~np.isfinite(a))[0]
+            raise DataError(f"{self.name}: angles: non-finite value {a[bad[0], bad[1]]} at "
+                            f"sample {int(bad[0])}, column {self.output_names[int(bad[1])]}")
 
     @property
     def n(self) -> int:
         """Number of samples N."""
         return int(self.t.shape[0])
 
+    def rows(self, start: int, stop: int | None = None, name: str | None = None,
+             from_zero: bool = False) -> Segment:
+        """The samples ``[start, stop)`` (``stop`` ``None``: to the end) as a segment: time,
+        inputs, outputs and angles cut alike.
+
+        Args:
+            name: the new segment's name (default: this one's).
+            from_zero: time from 0 at the first kept sample (else the times are kept).
+        """
+        t = self.t[start:stop]
+        return replace(self, name=self.name if name is None else name,
+                       t=t - t[0] if from_zero and t.size else t, u=self.u[start:stop],
+                       y=self.y[start:stop],
+                       angles=None if self.angles is None else self.angles[start:stop])
+
 
 def make_segment(name: str, t: ArrayLike, u: ArrayLike, y: ArrayLike,
-                 input_names: Sequence[str], output_names: Sequence[str]) -> Segment:
-    """Build a :class:`Segment` from arrays (1-D arrays are one signal), checking the grid."""
+                 input_names: Sequence[str], output_names: Sequence[str],
+                 angles: ArrayLike | None = None) -> Segment:
+    """Build a :class:`Segment` from arrays (1-D arrays are one signal), checking the grid.
+
+    Args:
+        angles: optional measured angles, shape (N, ny) (see :attr:`Segment.angles`).
+
+    Raises:
+        DataError: too few samples, time not increasing, or an array of the wrong shape
+            (naming ``name`` and the field).
+    """
     tt = np.asarray(t, dtype=float)
     u2 = np.asarray(u, dtype=float)
     y2 = np.asarray(y, dtype=float)
@@ -148,8 +206,16 @@ def make_segment(name: str, t: ArrayLike, u: ArrayLike, y: ArrayLike,
     dt = float((tt[-1] - tt[0]) / (tt.size - 1))
     if not dt > 0:
         raise DataError(f"{name}: time not increasing")
+    a2: Array | None = None
+    if angles is not None:
+        a2 = np.asarray(angles, dtype=float)
+        if a2.ndim == 1:
+            a2 = a2[:, None]
+        if a2.shape != y2.shape:
+            raise DataError(f"{name}: angles: expected shape {y2.shape} (as the outputs), "
+                            f"got {a2.shape}")
     return Segment(name=name, t=tt - tt[0], u=u2, y=y2, input_names=tuple(input_names),
-                   output_names=tuple(output_names), dt=dt)
+                   output_names=tuple(output_names), dt=dt, angles=a2)
 
 
 # --------------------------------------------------------------------------------------------
@@ -272,6 +338,39 @@ def _signal_column(path: Path, series: JointStateSeries, spec: SignalSpec) -> Ar
     with np.errstate(invalid="ignore", over="ignore"):
         col = arr[:, series.names.index(spec.joint)] * spec.scale
     return np.asarray(col, dtype=float)
+
+
+def _angle_columns(path: Path, series: Mapping[str, JointStateSeries],
+                   outputs: Sequence[SignalSpec]) -> list[Array] | None:
+    """The measured angle of each output, per message of its topic: the recorded ``position``
+    of the joint of a ``velocity`` output (times the output's scale), zeros for another
+    output; ``None`` when an output's topic records no positions, or a joint's position is
+    NaN throughout (not measured): no angles for the bag.
+
+    Raises:
+        DataError: a topic's ``position`` array does not have one column per joint name
+            (naming the bag, topic and field).
+    """
+    cols: list[Array] = []
+    for spec in outputs:
+        ser = series[spec.topic]
+        n = int(ser.stamps_ns.shape[0])
+        if spec.field != "velocity":
+            cols.append(np.zeros(n))
+            continue
+        pos = ser.position
+        if pos is None:
+            return None
+        if pos.shape != (n, len(ser.names)):
+            raise DataError(f"{path}: topic {spec.topic}: field position: expected shape "
+                            f"({n}, {len(ser.names)}) (messages, joints {list(ser.names)}), "
+                            f"got {pos.shape}")
+        with np.errstate(invalid="ignore", over="ignore"):
+            col = np.asarray(pos[:, ser.names.index(spec.joint)] * spec.scale, float)
+        if not np.any(np.isfinite(col)):  # NaN throughout: the joint's angle is not measured
+            return None
+        cols.append(col)
+    return cols
 
 
 def _runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
@@ -472,6 +571,10 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
       nothing is lost);
     * a killed recording is read up to its last complete chunk.
 
+    Each segment carries the measured angles (:attr:`Segment.angles`, gaps filled alike) when
+    the outputs' topics record positions; a non-finite position among the kept samples drops
+    the bag's angles with a :class:`DataWarning` (the fit still runs on the speeds).
+
     The pieces become segments named ``<bag>#1``, ``<bag>#2``, ... (in recording order; a bag
     without a split keeps the name ``<bag>``), each with time from 0 and fitted with its own
     initial state. A piece with fewer than ``checks.min_samples`` samples is dropped with a
@@ -489,6 +592,11 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
     ref_topic = outputs[0].topic
     series = read_jointstate_topics(path, topics)
     cols_by_spec = [_signal_column(path, series[s.topic], s) for s in specs]
+    angle_cols = _angle_columns(path, series, outputs)
+    n_ang = 0 if angle_cols is None else len(angle_cols)
+    # angle columns ride after the signals (gap filling alike); they do not split a recording
+    ang_specs = [] if angle_cols is None else list(outputs)
+    cols_by_spec += angle_cols or []
     stamps_of = {t: series[t].stamps_ns for t in topics}
     breaks = {t: _stamp_breaks(st) for t, st in stamps_of.items()}
     paired, failed = _pair_pieces(path, stamps_of, breaks, ref_topic)
@@ -519,9 +627,9 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
     bad_first: list[tuple[float, int, int, float] | None] = [None] * len(specs)
     for pc in paired:
         stamps = ref_stamps[pc[ref_topic]]
-        cols = np.column_stack([c[pc[s.topic]]
-                                for c, s in zip(cols_by_spec, specs, strict=True)])
-        finite = np.isfinite(cols)
+        cols = np.column_stack([c[pc[s.topic]] for c, s in zip(
+            cols_by_spec, specs + ang_specs, strict=True)])
+        finite = np.isfinite(cols[:, :len(specs)])
         for j, s in enumerate(specs):
             bad = np.flatnonzero(~finite[:, j])
             if bad.size and bad_first[j] is None:
@@ -584,6 +692,14 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
                         f"{checks.max_gap_samples} missing samples: {_gap_list(gaps)} (pieces of "
                         f"{sizes} samples)")
     every = np.concatenate([c for _, _, c, _ in kept])
+    if n_ang and not np.all(np.isfinite(every[:, len(specs):])):
+        bad = ~np.isfinite(every[:, len(specs):])
+        j = int(np.flatnonzero(bad.any(axis=0))[0])
+        warnings.warn(DataWarning(
+            f"{path}: topic {outputs[j].topic}: position[{outputs[j].joint}] is not finite in "
+            f"{int(bad[:, j].sum())} of {every.shape[0]} kept samples: no measured angles for "
+            "this bag (member angles integrate the measured speed)"), stacklevel=2)
+        n_ang = 0
     for j, s in enumerate(specs):
         check_signal(path, s.topic, s.name, every[:, j], s, checks)
     ny = len(outputs)
@@ -602,9 +718,14 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
                       f"{grid[-1]:.6f} s of the recording (split at {between})",)
         if missing:
             notes += (f"{missing} missing samples filled by linear interpolation",)
+        if n_ang:
+            notes += ("angles: recorded position of " + ", ".join(
+                f"{s.topic} {s.joint}" for s in outputs if s.field == "velocity"),)
+        nsig = len(specs)
         seg = make_segment(f"{path}{SEGMENT_SEP}{k}" if split else str(path), grid,
-                           filled[:, ny:], filled[:, :ny], [s.name for s in inputs],
-                           [s.name for s in outputs])
+                           filled[:, ny:nsig], filled[:, :ny], [s.name for s in inputs],
+                           [s.name for s in outputs],
+                           angles=filled[:, nsig:nsig + n_ang] if n_ang else None)
         out.append(replace(seg, notes=notes))
     return out
 
@@ -669,13 +790,17 @@ def lowpass(seg: Segment, cutoff_hz: float, order: int = 4, zero_phase: bool = T
     filt = signal.sosfiltfilt if zero_phase else signal.sosfilt
     u = np.asarray(filt(sos, seg.u, axis=0))
     y = np.asarray(filt(sos, seg.y, axis=0))
+    ang = None if seg.angles is None else np.asarray(filt(sos, seg.angles, axis=0))
     note = (f"low-pass Butterworth order {order} at {cutoff_hz:g} Hz"
-            + (" (zero-phase)" if zero_phase else ""))
-    return replace(seg, u=u, y=y, notes=(*seg.notes, note))
+            + (" (zero-phase)" if zero_phase else "")
+            + (", angles alike" if ang is not None else ""))
+    return replace(seg, u=u, y=y, angles=ang, notes=(*seg.notes, note))
 
 
 def decimate(seg: Segment, q: int) -> Segment:
-    """Keep every ``q``-th sample after a zero-phase anti-alias filter (order-8 Chebyshev I).
+    """Keep every ``q``-th sample after a zero-phase anti-alias filter (order-8 Chebyshev I);
+    the measured angles are sampled at the kept samples (the filter is zero-phase: the
+    filtered speeds stay aligned with the sampled angles).
 
     ``q == 1`` returns the segment unchanged.
     """
@@ -688,5 +813,6 @@ def decimate(seg: Segment, q: int) -> Segment:
     u = np.asarray(signal.decimate(seg.u, q, axis=0, zero_phase=True))
     y = np.asarray(signal.decimate(seg.y, q, axis=0, zero_phase=True))
     t = seg.t[::q][: y.shape[0]]
-    return replace(seg, t=t, u=u, y=y, dt=seg.dt * q,
+    ang = None if seg.angles is None else seg.angles[::q][: y.shape[0]]
+    return replace(seg, t=t, u=u, y=y, dt=seg.dt * q, angles=ang,
                    notes=(*seg.notes, f"decimated by {q} to {1.0 / (seg.dt * q):g} Hz"))

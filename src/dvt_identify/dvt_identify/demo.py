@@ -12,6 +12,16 @@
    the estimation bag, trace the residual and augment the model (report in ``identify/``); it
    pushes the accepted model to the model node, and the validation run is replayed again
    (residual *after*). ``closed_loop.png`` shows both.
+4. **The loop closes itself** (``episode.png``, ``episode/``): ``dvt-launch sim --supervise``
+   runs the simulated plant (clean, 250 Hz: the whole live chain - plant, driver, model node,
+   ring recorder, identifier - on 2 shared cores), the model node with the plant's own
+   parameters as its prior, the ``watch`` experiment (continuous neutral PRBS + multisine) and
+   the identifier's supervisor; at plant time 50 s the plant's Coulomb friction steps
+   (``--change-at 50:friction_step``). Unattended: the detector alarms, the supervisor waits for
+   30 s of post-change data, snapshots the ring, refits, finds the new model better on the
+   held-out 5 s, pushes it and watches the live residual for 15 s. The stage waits (bounded)
+   for that episode's report and plots the live residual's RMS (1-s bins, both outputs) with
+   the true change, the alarm, the estimated change time, refit, push and verdict.
 """
 
 from __future__ import annotations
@@ -27,6 +37,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from dvt_identify import style
 
 BIN = Path(sys.executable).parent
 
@@ -71,17 +83,19 @@ def model_replay(out: Path) -> dict[str, Any]:
     run, idx, yhat = _aligned(bag, pred)
     t, y = run.t[idx], run.speeds[idx]
     rms = np.sqrt(np.mean((y - yhat) ** 2, axis=0))
-    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(11, 8), sharex=True)
     for ax, j, name in ((axes[0], 0, "sun shaft"), (axes[1], 1, "carrier 3")):
-        ax.plot(t, y[:, j], lw=0.6, label="measured (simulated plant + noise)")
-        ax.plot(t, yhat[:, j], lw=1.0, label="dvt_model_node prediction")
-        ax.set_ylabel(f"{name} [rad/s]")
-        ax.legend(loc="upper left", fontsize=8)
-    axes[2].plot(t, run.currents[idx, 0], label="drive motor [A]")
+        ax.plot(t, yhat[:, j], **style.after("dvt_model_node prediction"))
+        ax.plot(t, y[:, j], **style.measured("measured (simulated plant + noise)"))
+        ax.set_ylabel(style.label(f"{name} speed", "rad/s"))
+        style.legend_outside(ax)
+    axes[2].plot(t, run.currents[idx, 0], color=style.CHANNELS[0], label="drive motor")
     for k in range(3):
-        axes[2].plot(t, 10 * run.currents[idx, 1 + k], label=f"brake {k + 1} [A x10]")
-    axes[2].set_xlabel("time [s]")
-    axes[2].legend(loc="upper left", fontsize=8)
+        axes[2].plot(t, run.currents[idx, 1 + k], color=style.CHANNELS[1 + k],
+                     label=f"band {k + 1}")
+    axes[2].set_ylabel(style.label("current", "A"))
+    axes[2].set_xlabel(style.label("time", "s"))
+    style.legend_outside(axes[2])
     fig.suptitle(f"Model node on a replayed run: residual RMS sun {rms[0]:.3f}, "
                  f"carrier3 {rms[1]:.3f} rad/s")
     fig.tight_layout()
@@ -238,21 +252,23 @@ def closed_loop(out: Path, hidden: str = "coulomb") -> dict[str, Any]:
     t1, _y1, yh1, r1 = _residuals(val, after)
     rms0 = np.sqrt(np.mean(r0 ** 2, axis=0))
     rms1 = np.sqrt(np.mean(r1 ** 2, axis=0))
-    fig, axes = plt.subplots(4, 1, figsize=(11, 10), sharex=True)
+    fig, axes = plt.subplots(4, 1, figsize=(12, 10), sharex=True)
     names = ("sun shaft", "carrier 3")
     for j in range(2):
         ax = axes[j]
-        ax.plot(t0, y0[:, j], lw=0.6, color="k", label="measured (validation run)")
-        ax.plot(t0, yh0[:, j], lw=0.8, label="model before (thesis physics prior)")
-        ax.plot(t1, yh1[:, j], lw=0.8, label="model after (identified + accepted effects)")
-        ax.set_ylabel(f"{names[j]} [rad/s]")
-        ax.legend(loc="upper right", fontsize=7)
+        ax.plot(t0, yh0[:, j], **style.before("model before (thesis physics prior)"))
+        ax.plot(t1, yh1[:, j], **style.after("model after (identified + accepted effects)"))
+        ax.plot(t0, y0[:, j], **style.measured("measured (validation run)"))
+        ax.set_ylabel(style.label(f"{names[j]} speed", "rad/s"))
+        style.legend_outside(ax)
         ax2 = axes[2 + j]
-        ax2.plot(t0, r0[:, j], lw=0.6, label=f"residual before (RMS {rms0[j]:.2f} rad/s)")
-        ax2.plot(t1, r1[:, j], lw=0.6, label=f"residual after (RMS {rms1[j]:.2f} rad/s)")
-        ax2.set_ylabel(f"{names[j]} residual [rad/s]")
-        ax2.legend(loc="upper right", fontsize=7)
-    axes[-1].set_xlabel("time [s]")
+        ax2.plot(t0, r0[:, j], **style.residual(
+            "before", f"residual before (RMS {rms0[j]:.2f} rad/s)"))
+        ax2.plot(t1, r1[:, j], **style.residual(
+            "after", f"residual after (RMS {rms1[j]:.2f} rad/s)"))
+        ax2.set_ylabel(style.label(f"{names[j]} measured - predicted", "rad/s"))
+        style.legend_outside(ax2)
+    axes[-1].set_xlabel(style.label("time", "s"))
     fig.suptitle(f"Closed loop on the simulated plant (hidden: {hidden}): live residual "
                  f"before/after identify + push")
     fig.tight_layout()
@@ -266,6 +282,121 @@ def closed_loop(out: Path, hidden: str = "coulomb") -> dict[str, Any]:
             "plot": str(png)}
 
 
+EPISODE_RATE_HZ = 250.0
+"""Controller rate of the live-loop stage [Hz]: at 1 kHz (or 500 Hz) the chain's Python nodes
+fall behind on 2 cores shared with other work; dropped samples make residual spikes and
+false alarms."""
+EPISODE_CHANGE_AT_S = 50.0
+"""Plant time of the injected change [s] (after the start-up and the detector's reference)."""
+EPISODE_TIMEOUT_S = 240.0
+"""Longest wait for the episode of the injected change [s]."""
+
+
+def episode(out: Path) -> dict[str, Any]:
+    """Stage 4 (see the module docstring): the unattended loop; returns the measured figures
+    and writes ``episode.png``.
+
+    Raises:
+        RuntimeError: no episode of the injected change within :data:`EPISODE_TIMEOUT_S`.
+    """
+    from dvt_driver.run.bench_loop import episode_launch_args, run_episode
+
+    logdir = out / "episode"
+    if logdir.exists():
+        shutil.rmtree(logdir)
+    args = episode_launch_args(logdir, rate=EPISODE_RATE_HZ, change_at=EPISODE_CHANGE_AT_S,
+                               duration=EPISODE_TIMEOUT_S)
+    _log(f"the loop on its own: dvt-launch {' '.join(args)}")
+    t0 = time.monotonic()
+    rc = run_episode(logdir, args, EPISODE_TIMEOUT_S)
+    f = plot_episode(logdir, out / "episode.png")
+    png = out / "episode.png"
+    restored = f.get("restored_s")
+    summary = {"figures": f, "launch_status": rc, "wall_s": round(time.monotonic() - t0, 1),
+               "episode_report": str(logdir / "identify" / "episodes"), "plot": str(png),
+               "rate_hz": EPISODE_RATE_HZ}
+    _log(f"episode: change detected after {f.get('detection_delay_s')} s (estimated change "
+         f"time {f.get('change_time_error_s')} s off), outcome {f.get('outcome')}, pushed "
+         f"{f.get('pushed')} at +{f.get('push_after_change_s')} s, rolled back "
+         f"{f.get('rolled_back')}, residual restored {restored} s after the change; residual "
+         f"RMS clean {f.get('residual_rms_clean')}, changed {f.get('residual_rms_changed')}, "
+         f"restored {f.get('residual_rms_restored')} rad/s; false alarms before the change "
+         f"{f.get('false_alarms')} in {f.get('clean_tested_s')} s of testing")
+    return summary
+
+
+def plot_episode(logdir: Path, png: Path) -> dict[str, Any]:
+    """Draw the episode run in ``logdir`` (``dvt-launch --supervise`` log directory) into
+    ``png``; returns the measured figures (:func:`dvt_driver.run.bench_loop.analyse_episode`).
+
+    Raises:
+        RuntimeError: no episode report of the injected change in ``logdir``.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dvt_driver.run.bench_loop import RESTORED_FACTOR, analyse_episode
+
+    run = analyse_episode(logdir)
+    f = run.figures
+    rec = run.episode
+    if rec is None or run.change is None:
+        raise RuntimeError(f"no episode report of the injected change in {logdir} (logs and "
+                           "reports there)")
+    change = run.change
+    t = run.bins + 0.5 - change
+    clean = np.array(list(f["residual_rms_clean"].values()))
+    fig, axes = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
+    steps = {s["state"]: s["t"] for s in rec.get("steps") or []}
+    first = min((a for a in run.alarms if a["stamp_s"] >= change), default=None,
+                key=lambda a: a["stamp_s"])
+    marks = [(0.0, "k", "-", "true change (truth.yaml)")]
+    if first is not None:
+        marks += [(first["stamp_s"] - change, "tab:red", "--",
+                   f"alarm ({first['name']}, +{first['stamp_s'] - change:.2f} s)"),
+                  (first["change_s"] - change, "tab:red", ":", "estimated change time")]
+    for state, color, label in (("refitting", "tab:purple", "refit requested (snapshot)"),
+                                ("pushing", "tab:orange", "refit done: better on held-out"),
+                                ("watching", "tab:green", "pushed"),
+                                ("idle", "tab:blue", f"verdict: {rec.get('outcome')}")):
+        if state in steps:
+            marks.append((steps[state] - change, color, "-.", label))
+    for j, (ax, name) in enumerate(zip(axes, ("sun shaft", "carrier 3"), strict=True)):
+        ax.semilogy(t, run.rms[:, j], lw=1.2, color="tab:gray", label="live residual RMS (1 s)")
+        ax.axhline(clean[j], color="tab:green", lw=0.8,
+                   label=f"clean level {clean[j]:.2f} rad/s")
+        ax.axhline(RESTORED_FACTOR * clean[j], color="tab:green", lw=0.8, ls=":",
+                   label=f"{RESTORED_FACTOR:g} x clean (restored)")
+        if rec.get("estimation"):
+            e0, e1 = rec["estimation"]
+            v0, v1 = rec["validation"]
+            ax.axvspan(e0 - change, e1 - change, color="tab:purple", alpha=0.08,
+                       label="refit: estimation window")
+            ax.axvspan(v0 - change, v1 - change, color="tab:orange", alpha=0.12,
+                       label="held-out validation")
+        for x, color, ls, label in marks:
+            ax.axvline(x, color=color, ls=ls, lw=1.0, label=label)
+        ax.set_ylabel(f"{name} residual RMS [rad/s]")
+        ax.grid(True, which="both", alpha=0.3)
+        if "idle" in steps:  # after the verdict the run is stopped (motor off)
+            ax.set_xlim(t[0] - 1.0, steps["idle"] - change + 4.0)
+    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    axes[-1].set_xlabel("time from the injected change [s]")
+    restored = f.get("restored_s")
+    outcome = f"{rec.get('outcome')}" + (f", residual restored +{restored} s" if restored
+                                         is not None else "")
+    fig.suptitle(f"The loop on its own ({EPISODE_RATE_HZ:g} Hz simulated plant, Coulomb step at "
+                 f"plant time {EPISODE_CHANGE_AT_S:g} s): detection "
+                 f"+{f.get('detection_delay_s')} s, push +{f.get('push_after_change_s')} s, "
+                 f"{outcome}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return f
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     out = Path(args[0] if args else "demo-out").resolve()
@@ -273,11 +404,14 @@ def main(argv: list[str] | None = None) -> int:
     summary: dict[str, Any] = {"model_replay": model_replay(out)}
     summary["closed_loop"] = closed_loop(out)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    summary["episode"] = episode(out)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     cl = summary["closed_loop"]
     _log(f"live residual RMS before {cl['live_residual_rms_before']}, "
          f"after {cl['live_residual_rms_after']}")
     _log(f"done: {out / 'summary.json'}, plots {out / 'model_replay.png'}, "
-         f"{out / 'closed_loop.png'}, report {out / 'identify'}")
+         f"{out / 'closed_loop.png'}, {out / 'episode.png'}, reports {out / 'identify'}, "
+         f"{out / 'episode'}")
     return 0
 
 

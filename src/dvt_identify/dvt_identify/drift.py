@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -141,7 +141,7 @@ def _simulate_windows(fit: OEFit, i: int, values: Array, seg: Segment, x0: Array
         a, b = int(edges[k]), int(edges[k + 1])
         stop = min(b + 1, seg.n)  # one sample into the next window: its initial state
         th[i] = values[k]
-        piece = replace(seg, t=seg.t[a:stop], u=seg.u[a:stop], y=seg.y[a:stop])
+        piece = seg.rows(a, stop)
         with np.errstate(all="ignore"):
             if m.C is None:
                 xs = m.simulate(th, piece, x)

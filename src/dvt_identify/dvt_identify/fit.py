@@ -25,7 +25,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -152,7 +152,7 @@ def _engagement_windows(segments: Sequence[Segment], j: int, pre: float = 0.05,
             a = max(0, int(e) - round(pre / seg.dt))
             b = min(seg.n, int(e) + round(post / seg.dt))
             if b - a >= 5:
-                out.append(replace(seg, t=seg.t[a:b], u=seg.u[a:b], y=seg.y[a:b]))
+                out.append(seg.rows(a, b))
             if len(out) >= most:
                 return out
     return out
@@ -703,7 +703,7 @@ class OEFit:
         n = seg.n
         if slow > 0 and np.isfinite(slow):
             n = int(min(seg.n, max(200, math.ceil(10.0 / (slow * seg.dt)))))
-        part = seg if n >= seg.n else replace(seg, t=seg.t[:n], u=seg.u[:n], y=seg.y[:n])
+        part = seg if n >= seg.n else seg.rows(0, n)
 
         def fun(x0: Array) -> Array:
             return self._residual(th, [part], [x0], w)

@@ -28,6 +28,16 @@
 With coloured residuals LM and LR overstate significance (they assume white errors), which is why
 acceptance also needs the validation test (its variance is HAC, so colour does not fool it).
 
+**Cross-validated selection** (``cross_validate=True``, ``dvt-identify --select-on cv``): with
+k >= 2 estimation bags and no validation data, the "validation" simulation of every stage is
+out of sample by leave-one-bag-out: for each bag the stage's model is refitted on the other
+bags (warm-started at the all-bag optimum, one start: a local refinement to the fold's own
+optimum) and simulates the left-out bag (initial state estimated with the parameters fixed).
+The per-sample losses of the k left-out bags are pooled, and (c) is the Diebold-Mariano test
+on that pool. Scoring, the LR test and BIC use all estimation bags as before, and an accepted
+model is the refit on all of them. Test bags take no part (:func:`dvt_identify.pipeline.run`
+reads them after ``identify`` returns). Cost: k extra refits per stage.
+
 Before the loop, :func:`dvt_identify.drift.drift_check` refits the baseline structure on windows
 of the estimation data: when a parameter drifts beyond its uncertainty the loop accepts no static
 effect (they would only mimic the drift) and the report names the drift.
@@ -36,6 +46,7 @@ effect (they would only mimic the drift) and the report names the drift.
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -119,6 +130,9 @@ class Stage:
         val_x0: estimated initial states of the validation segments.
         resid_est, resid_val: residual analyses.
         spectrum_val: residual spectrum of each output on validation data.
+        folds: with cross-validated selection, the model refitted without each estimation
+            bag in turn (:func:`cv_folds` order); its ``val_pred`` are their out-of-sample
+            simulations of the left-out bags. Empty otherwise.
     """
 
     label: str
@@ -131,6 +145,7 @@ class Stage:
     resid_est: list[OutputResidual]
     resid_val: list[OutputResidual]
     spectrum_val: list[Spectrum]
+    folds: list[OEFit] = field(default_factory=list)
 
     @property
     def effects(self) -> tuple[Effect, ...]:
@@ -267,8 +282,9 @@ class IdentificationResult:
     test: Any = None
     """Figures on test data read after every choice (:class:`dvt_identify.series.TestFigures`)."""
     selection: str = "validation"
-    """Which data chose the effects: ``validation`` (the validation bags) or ``holdout`` (the
-    held-out end of each estimation segment)."""
+    """Which data chose the effects: ``validation`` (the validation bags), ``holdout`` (the
+    held-out end of each estimation segment) or ``cv`` (leave-one-bag-out cross-validation
+    across the estimation bags; the validation figures are then out-of-fold)."""
 
     @property
     def accepted(self) -> list[Decision]:
@@ -291,13 +307,21 @@ def _seg_losses(fit: OEFit, segments: Sequence[Segment]) -> tuple[Array, int, in
 
 
 def make_stage(label: str, fit: OEFit, est: Sequence[Segment], val: Sequence[Segment],
-               same_rate: bool, lags: int = 25) -> Stage:
-    """Evaluate ``fit`` on the full-rate estimation and the validation segments."""
+               same_rate: bool, lags: int = 25,
+               folds: tuple[Sequence[OEFit], Sequence[Sequence[int]]] | None = None) -> Stage:
+    """Evaluate ``fit`` on the full-rate estimation and the validation segments.
+
+    ``folds`` (cross-validated selection, ``val`` then the estimation segments): the fold fits
+    and the segment indices each one left out; every validation segment is then simulated by
+    the fold fit that did not see it (out of sample)."""
     m = fit.model
     est_x0 = fit.x0_ if same_rate else [fit.estimate_x0(s) for s in est]
     est_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(est, est_x0, strict=True)]
-    val_x0 = [fit.estimate_x0(s) for s in val]
-    val_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(val, val_x0, strict=True)]
+    if folds is None:
+        val_x0 = [fit.estimate_x0(s) for s in val]
+        val_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(val, val_x0, strict=True)]
+    else:
+        val_x0, val_pred = _out_of_fold(folds[0], folds[1], val)
     names = est[0].output_names
     inames = est[0].input_names
     k = fit.n_estimated_
@@ -310,7 +334,59 @@ def make_stage(label: str, fit: OEFit, est: Sequence[Segment], val: Sequence[Seg
     sp = [residual_spectrum([(s.y - p)[:, j] for s, p in zip(val, val_pred, strict=True)],
                             val[0].dt) for j in range(len(names))]
     return Stage(label=label, fit=fit, est=fe, val=fv, est_pred=est_pred, val_pred=val_pred,
-                 val_x0=val_x0, resid_est=re, resid_val=rv, spectrum_val=sp)
+                 val_x0=val_x0, resid_est=re, resid_val=rv, spectrum_val=sp,
+                 folds=[] if folds is None else list(folds[0]))
+
+
+CV_MIN_BAGS = 2
+"""Fewest estimation bags for leave-one-bag-out cross-validated selection."""
+
+
+def bag_of(name: str) -> str:
+    """The bag a segment came from: its name without the ``#<k>`` suffix of a bag split at a
+    gap (:func:`dvt_identify.data.load_bag_segments`)."""
+    return re.sub(r"#\d+$", "", name)
+
+
+def cv_folds(est: Sequence[Segment]) -> list[list[int]]:
+    """Segment indices of each estimation bag (the folds of leave-one-bag-out), bags in order
+    of first appearance; the segments of a bag split at gaps stay together."""
+    folds: dict[str, list[int]] = {}
+    for i, s in enumerate(est):
+        folds.setdefault(bag_of(s.name), []).append(i)
+    return list(folds.values())
+
+
+def fold_fits(fit: OEFit, fit_segs: Sequence[Segment], folds: Sequence[Sequence[int]],
+              seed: int = 0) -> list[OEFit]:
+    """``fit``'s model refitted without each fold in turn (one start, warm from ``fit``'s
+    optimum, the same output weights: a local refinement to the fold's optimum).
+
+    Raises:
+        FitError: a fold's refit failed (naming the left-out bag).
+    """
+    out = []
+    for held in folds:
+        train = [s for i, s in enumerate(fit_segs) if i not in held]
+        try:
+            out.append(OEFit(fit.model, starts=1, seed=seed, theta0=fit.theta_.copy(),
+                             weights=fit.weights_, more_starts=0).fit(train))
+        except FitError as exc:
+            raise FitError(f"cross-validation fold without {bag_of(fit_segs[held[0]].name)}: "
+                           f"{exc}") from exc
+    return out
+
+
+def _out_of_fold(fits: Sequence[OEFit], folds: Sequence[Sequence[int]],
+                 segs: Sequence[Segment]) -> tuple[list[Array], list[Array]]:
+    """Initial states and simulations of every segment by the fold fit that left it out."""
+    x0s: list[Array] = [np.zeros(0)] * len(segs)
+    preds: list[Array] = [np.zeros(0)] * len(segs)
+    for ff, held in zip(fits, folds, strict=True):
+        for i in held:
+            x0s[i] = ff.estimate_x0(segs[i])
+            preds[i] = ff.model.simulate(ff.theta_, segs[i], x0s[i])
+    return x0s, preds
 
 
 def _candidate_theta(fit: OEFit, cand: Effect, values: Array) -> tuple[OEModel, Array]:
@@ -344,9 +420,10 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
     base = [fit.model.simulate(fit.theta_, s, x0) for s, x0 in zip(segments, fit.x0_,
                                                                      strict=True)]
     coarsest = max(segments, key=lambda s: s.dt)  # shape variants the slowest rate can show
-    view = SegmentView(coarsest.dt, coarsest.u, coarsest.y)
+    view = SegmentView(coarsest.dt, coarsest.u, coarsest.y, coarsest.angles)
     ctx = ScoringContext(
-        views=[SegmentView(s.dt, s.u, s.y) for s in segments], simulated=base, weights=w,
+        views=[SegmentView(s.dt, s.u, s.y, s.angles) for s in segments], simulated=base,
+        weights=w,
         member_residual=lambda member: member_force_residual(fit, segments[0], member))
     scores = []
     for cand in candidates:
@@ -450,8 +527,16 @@ def member_force_residual(fit: OEFit, seg: Segment, member: Array) -> Array:
 def _explained(Z: Array, e: Array, ee: float, lb: Array, ub: Array, keep: NDArray[np.bool_]
                 ) -> tuple[float, Array, float]:
     """Bounded LS of ``e`` on the kept columns of ``Z`` (coefficients within ``[lb, ub]``):
-    (fraction of ``ee`` removed, coefficients (0 for dropped columns), correlation: signed for a
-    single column, else the multiple correlation)."""
+    (the sum of squares the columns remove from ``e``, as a fraction of ``ee``; coefficients (0
+    for dropped columns); correlation: signed for a single column, else the multiple
+    correlation).
+
+    ``e`` may be the residual projected off the model's span and ``ee`` the full residual's sum
+    of squares: only what the columns remove from ``e`` itself counts. (Measured ``ee - |e -
+    Z b|^2`` instead, every candidate was credited with the part of the residual the model's
+    own sensitivities hold - non-zero at a bound-constrained or non-smooth optimum - e.g. the
+    same 18.5 % for windage, backlash and delay, which buried the true 0.3 % of Coulomb
+    friction on a second member.)"""
     beta = np.zeros(Z.shape[1])
     norms = np.linalg.norm(Z, axis=0)
     use = keep & (norms > 0)
@@ -465,7 +550,7 @@ def _explained(Z: Array, e: Array, ee: float, lb: Array, ub: Array, keep: NDArra
     sol = lsq_linear(rz, qz.T @ e, bounds=(np.minimum(lo, 0.0), np.maximum(hi, 0.0)))
     beta[use] = sol.x / norms[use]
     res = e - Zk @ sol.x
-    r2 = min(max((ee - float(res @ res)) / ee, 0.0), 1.0)
+    r2 = min(max((float(e @ e) - float(res @ res)) / ee, 0.0), 1.0)
     if Z.shape[1] == 1:
         corr = float(Zk[:, 0] @ e) / math.sqrt(ee)
     else:
@@ -518,20 +603,25 @@ def _struct_guesses(fit_segments: Sequence[Segment], desc: Description) -> list[
 
 def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
              config: LoopConfig | None = None, progress: Progress | None = None,
-             check: Identifiability | None = None) -> IdentificationResult:
+             check: Identifiability | None = None, cross_validate: bool = False
+             ) -> IdentificationResult:
     """Run baseline fit, scoring and the augment loop (see module docstring).
 
     Args:
         est: estimation segments (fitted jointly, each with its own initial state).
         val: validation segments (never used for fitting; initial states estimated with the
-            parameters fixed).
+            parameters fixed). Must be empty with ``cross_validate``.
         desc: the actuator description.
         config: loop options (default from the description).
         progress: called with progress lines.
         check: the identifiability check the description was prepared with (reported).
+        cross_validate: choose on leave-one-bag-out cross-validation across the estimation
+            bags (at least :data:`CV_MIN_BAGS`; see module docstring) instead of ``val``.
 
     Raises:
-        DataError: no validation data, or segment names disagree with the description.
+        DataError: no validation data (or validation data with ``cross_validate``), fewer than
+            two estimation bags with ``cross_validate``, or segment names disagree with the
+            description.
         FitError: the baseline fit failed.
     """
     t_start = time.monotonic()
@@ -539,7 +629,21 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     say = progress or (lambda _m: None)
     if not est:
         raise DataError("no estimation bag given")
-    if not val:
+    folds: list[list[int]] | None = None
+    if cross_validate:
+        folds = cv_folds(est)
+        if len(folds) < CV_MIN_BAGS:
+            raise DataError(
+                f"--select-on cv: leave-one-bag-out cross-validation needs at least "
+                f"{CV_MIN_BAGS} estimation bags, got {len(folds)} "
+                f"({', '.join(sorted({bag_of(s.name) for s in est}))}); pass more bags or "
+                "use --select-on holdout")
+        if val:
+            raise DataError(f"cross-validated selection takes no validation segments (got "
+                            f"{len(val)}: {', '.join(s.name for s in val)}); they would be "
+                            "test data, read after every choice")
+        val = list(est)  # simulated out of fold: each by the model fitted without its bag
+    elif not val:
         raise DataError("no validation bag given: figures are always computed on data not used "
                         "for estimation (pass --validate BAG)")
     notes: list[str] = []
@@ -548,12 +652,24 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     fit_segs, rate_notes = fit_segments(est, base_model, cfg.fit_decimate)
     notes.extend(rate_notes)
     same_rate = all(f is s for f, s in zip(fit_segs, est, strict=True))
+    guesses = _struct_guesses(fit_segs, desc)
+    # the fit runs the guess, each usable structure guess, then random starts up to cfg.starts
     say(f"baseline fit: {len(est)} estimation segment(s), {sum(s.n for s in fit_segs)} samples, "
-        f"{cfg.starts} starts")
+        + (f"up to {max(cfg.starts, 1 + len(guesses))} start(s) (the guess, "
+           f"{len(guesses)} structure guess(es), random ones up to {cfg.starts} in all)"
+           if guesses else f"{cfg.starts} start(s)"))
     n_model_effects = len(base_model.effects)
     base_fit = OEFit(base_model, starts=cfg.starts, seed=cfg.seed,
-                     extra_starts=_struct_guesses(fit_segs, desc), progress=say).fit(fit_segs)
-    baseline = make_stage("baseline", base_fit, est, val, same_rate, cfg.lags)
+                     extra_starts=guesses, progress=say).fit(fit_segs)
+    if folds is not None:
+        say(f"cross-validation: refitting the baseline without each of the {len(folds)} "
+            "estimation bags in turn")
+        notes.append(f"effects chosen by leave-one-bag-out cross-validation across the "
+                     f"{len(folds)} estimation bags: the validation figures are out of fold "
+                     "(each bag simulated by the model fitted on the others); the models "
+                     "reported are fitted on all estimation bags")
+    baseline = make_stage("baseline", base_fit, est, val, same_rate, cfg.lags,
+                          _folds(base_fit, fit_segs, folds, cfg.seed))
     notes.extend(f"start guard: {n}" for n in base_fit.notes_)
     if base_fit.suspect_:
         notes.append("warning: the baseline optimum is suspect (" + "; ".join(base_fit.suspect_)
@@ -570,7 +686,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     current = baseline
     remaining = []
     for cand in desc.make_candidates():
-        why_not = cand.unavailable([SegmentView(s.dt, s.u, s.y) for s in fit_segs])
+        why_not = cand.unavailable([SegmentView(s.dt, s.u, s.y, s.angles) for s in fit_segs])
         if why_not is None:
             remaining.append(cand)
         else:
@@ -609,7 +725,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         trials = []
         for sc in screened[: cfg.max_tries_per_round]:
             say(f"round {rnd}: refit with {sc.label}")
-            dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say)
+            dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say, folds)
             say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
                 f"({dec.reason})")
             trials.append(dec)
@@ -622,7 +738,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
             if prop is not None and prop.p_value < cfg.alpha:
                 scores.append(prop)
                 say(f"round {rnd}: refit with {prop.label}")
-                dec = _try(current, prop, fit_segs, est, val, same_rate, cfg, rnd, say)
+                dec = _try(current, prop, fit_segs, est, val, same_rate, cfg, rnd, say,
+                           folds)
                 say(f"round {rnd}: {prop.label}: "
                     f"{'passes' if dec.accepted else 'rejected'} ({dec.reason})")
                 trials.append(dec)
@@ -647,7 +764,14 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,
         decisions=decisions, config=cfg, seconds=time.monotonic() - t_start,
         fit_dt=fit_segs[0].dt, notes=notes, val_segments=list(val), identifiability=check,
-        drift=drift, est_segments=list(est))
+        drift=drift, est_segments=list(est),
+        selection="validation" if folds is None else "cv")
+
+
+def _folds(fit: OEFit, fit_segs: Sequence[Segment], folds: Sequence[Sequence[int]] | None,
+           seed: int) -> tuple[list[OEFit], Sequence[Sequence[int]]] | None:
+    """``make_stage``'s ``folds`` argument: ``None`` without cross-validation."""
+    return None if folds is None else (fold_fits(fit, fit_segs, folds, seed), folds)
 
 
 def _fmt(f: Figures) -> str:
@@ -657,7 +781,7 @@ def _fmt(f: Figures) -> str:
 
 def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
          est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
-         rnd: int, say: Progress) -> Decision:
+         rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None = None) -> Decision:
     old = current.fit
     model = OEModel(old.model.structure, (*old.model.effects, sc.effect))
     theta0 = np.concatenate([old.theta_, [p.initial for p in sc.effect.params]])
@@ -685,7 +809,11 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
           else -math.inf)
     thr = float(stats.chi2.ppf(1.0 - cfg.alpha, max(k, 1)))
     dbic = -lr + k * math.log(n)
-    stage = make_stage(f"+{sc.label}", fit, est, val, same_rate, cfg.lags)
+    try:
+        stage = make_stage(f"+{sc.label}", fit, est, val, same_rate, cfg.lags,
+                           _folds(fit, fit_segs, folds, cfg.seed + rnd))
+    except FitError as exc:
+        return Decision(rnd, sc, False, f"refit failed: {exc}")
     before, after = current.val.mean_fit, stage.val.mean_fit
     gain = after - before
     dm = validation_test(current, stage, val)
@@ -697,7 +825,8 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
         why.append(lr_text(lr, thr))
     if not dbic < 0:
         why.append(f"BIC did not decrease ({dbic:+.3g})")
-    val_text = (f"validation fit {before:.2f} -> {after:.2f} % (gain {gain:+.3f} points; "
+    what = "out-of-fold (leave-one-bag-out) fit" if folds is not None else "validation fit"
+    val_text = (f"{what} {before:.2f} -> {after:.2f} % (gain {gain:+.3f} points; "
                 f"error {-100 * dm.relative_gain:+.3g} %, Diebold-Mariano {dm.stat:.3g}, "
                 f"p = {dm.p_value:.2g})")
     if not dm.better(cfg.alpha):

@@ -51,6 +51,7 @@ from dvt_identify.pipeline import model_push, run
 from dvt_model import rosutil
 from dvt_model.contract import (
     CHANGE_QOS,
+    DIAGNOSTICS,
     IDENTIFY_EPISODE,
     IDENTIFY_NODE,
     IDENTIFY_REQUEST,
@@ -122,7 +123,7 @@ class IdentifyNode(Node):
         self._worker: threading.Thread | None = None
         self._lock = threading.Lock()
         self.pub_result = self.create_publisher(String, IDENTIFY_RESULT, LATCHED)
-        self.pub_diag = self.create_publisher(rosutil.DiagnosticArray, rosutil.DIAGNOSTICS, 10)
+        self.pub_diag = self.create_publisher(rosutil.DiagnosticArray, DIAGNOSTICS, 10)
         self.create_service(Trigger, SRV_IDENTIFY_RUN, self._on_run)
         self.create_subscription(String, IDENTIFY_REQUEST, self._on_request, 10)
         self.create_timer(1.0, self._diagnostics)
@@ -271,6 +272,9 @@ class IdentifyNode(Node):
         if not enabled:
             return
         self.supervisor = sv.Supervisor(config)
+        # the alarm topic is latched (transient local): alarms of an earlier run arrive first
+        wall = self.get_clock().now().nanoseconds * 1e-9
+        self.supervisor.ignore_before_s = wall - self.max_data_lag_s
         self.session = f"{IDENTIFY_NODE}-{time.time_ns()}"
         self.bad_alarms = 0
         self.episode_dirs: dict[int, Path] = {}

@@ -35,6 +35,7 @@ from dvt_identify.fit import Progress, stderr_progress
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.push import Push, model_node_parameters
 from dvt_identify.report import write_report
+from dvt_model.progress import ProgressLine, fraction
 
 
 def _quiet(_msg: str) -> None:
@@ -167,9 +168,10 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         progress: receives the progress lines (default: stderr).
         test_bags: read only after every choice is made (:mod:`dvt_identify.series`); their
             figures took no part in fitting or choosing effects.
-        select_on: ``validation`` (the validation bags choose the effects) or ``holdout``
-            (the last 30 % of each estimation segment chooses them; the validation bags are
-            then test data, read after every choice).
+        select_on: ``validation`` (the validation bags choose the effects), ``holdout``
+            (the last 30 % of each estimation segment chooses them) or ``cv`` (leave-one-bag-out
+            cross-validation across at least 2 estimation bags); with ``holdout`` and ``cv``
+            the validation bags are test data, read after every choice.
         init_window: test initial states from the first ``init_window`` samples only
             (benchmark style; 0: the whole segment).
         series: write ``series.npz`` and ``series/*.csv``
@@ -181,9 +183,9 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
     """
     from dvt_identify import series as series_mod
 
-    if select_on not in ("validation", "holdout"):
-        raise DataError(f"select_on: expected validation or holdout, got {select_on!r}")
-    if select_on == "holdout":  # the validation bags become test data
+    if select_on not in ("validation", "holdout", "cv"):
+        raise DataError(f"select_on: expected validation, holdout or cv, got {select_on!r}")
+    if select_on in ("holdout", "cv"):  # the validation bags become test data
         test_bags, val_bags = [*val_bags, *test_bags], []
     _distinct(est_bags, val_bags, test_bags)
     t0 = time.monotonic()
@@ -209,6 +211,8 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         say(f"selection on the held-out last {100 * series_mod.HOLDOUT_FRACTION:g} % of each "
             "estimation segment")
         result = identify(fit_part, held, desc, cfg, say, check=chk)
+    elif select_on == "cv":
+        result = identify(est, [], desc, cfg, say, check=chk, cross_validate=True)
     else:
         result = identify(est, val, desc, cfg, say, check=chk)
     result.selection = select_on
@@ -253,4 +257,43 @@ def model_push(result: IdentificationResult) -> Push:
         PushError: not the DVT structure, or a value the node would refuse.
     """
     n_model = len(result.description.make_model_effects())
-    return model_node_parameters(result.final, n_model)
+    return model_node_parameters(result.final, n_model,
+                                 input_joints=[s.joint for s in result.description.inputs])
+
+
+class TerminalProgress:
+    """``dvt-identify``'s progress on a terminal (a :class:`~dvt_model.progress.ProgressLine`):
+    the milestones (the baseline's figures, each acceptance, the test figure, the report) stay as
+    lines; everything else (reading, fit starts, candidates scored, refits) rewrites one status
+    line: ``round 2: scored 7/20 (35 %): windage@carrier3 ...``, a fit start with the stage it
+    belongs to. Silent when the line is (stderr is not a terminal)."""
+
+    MILESTONES = ("baseline:", "test fit", "report written", "series written")
+
+    def __init__(self, line: ProgressLine) -> None:
+        self.line = line
+        self.context = ""
+        self.round = ""
+        self.scored = 0
+        self.to_score = 0
+
+    def __call__(self, msg: str) -> None:
+        m = " ".join(msg.split())
+        if m.startswith(self.MILESTONES) or ": ACCEPTED " in m:
+            self.line.note(f"{self.line.prefix}{m}")
+            return
+        if m.startswith("round ") and ": scoring " in m:
+            head, _, rest = m.partition(": scoring ")
+            self.round, self.scored = head, 0
+            self.to_score = int(rest.split()[0]) if rest.split()[0].isdigit() else 0
+            self.context = m
+        elif m.startswith("score "):
+            self.scored += 1
+            m = f"{self.round}: scored {fraction(self.scored, self.to_score)}: {m[6:]}"
+        elif m.startswith("start "):  # a fit start: after the (short) stage it belongs to
+            m = f"{self.context}; {m}" if self.context else m
+        elif m.startswith(("round ", "baseline fit")):
+            ctx = m if m.startswith("round ") else m.split(":")[0]
+            self.context = ctx if len(ctx) <= 48 else ctx[:47] + "…"
+        self.line.update(m)
+

@@ -2,11 +2,29 @@
 
 The DVT structure (``descriptions/dvt.yaml``: mechanical, symmetric M and D entries
 ``M11, M12, M22, D11, D12, D22``) maps to the model node's ``M`` and ``D``; each accepted
-effect maps to the term of the node's ``effects`` JSON that it declares
-(:meth:`dvt_identify.effects.Effect.model_term`; Coulomb with offset, Stribeck, windage,
-measurement delay, sensor gain). Effects the model node cannot represent (backlash, an extra
-brake-engagement stage or dead time, ...) or whose values it would refuse are listed in
-``skipped`` with the reason and not pushed. The baseline's band brakes (``brake_lockup``
+effect maps to the terms of the node's ``effects`` JSON that it declares
+(:meth:`dvt_identify.effects.Effect.model_terms`; Coulomb with offset, Stribeck, windage,
+measurement delay, sensor gain; the position-dependent ``gravity_load`` -> ``gravity``,
+``periodic_disturbance`` -> ``angle_periodic``, ``unlisted`` -> one ``library`` term per
+coefficient). Members, angle forms and output indices are reordered from the model's outputs
+to the node's speeds (:data:`dvt_model.contract.SPEED_NAMES`) when the outputs are those names
+in another order; a ``library`` term's input is mapped from the model's input name to the
+node's current (:data:`~dvt_model.contract.CURRENT_NAMES`; ``input_joints``, else the name
+itself or :data:`INPUT_ALIASES`).
+
+Effects the model node cannot represent (backlash, an extra brake-engagement stage or dead
+time, a disturbance clocked on time, ...) or whose values it would refuse are listed in
+``skipped`` with the reason and not pushed; so are
+
+- a term that depends on an angle (:func:`dvt_model.contract.term_needs_angle`) when the fit's
+  segments did not all carry the measured positions: the identifier then integrated the member
+  speed from 0 at each segment's first sample
+  (:data:`~dvt_identify.effects.position.ANGLE_FROM_SPEED`), a phase relative to the
+  recording, while the node's angles are the measured positions;
+- a term whose input the identified model transforms (a brake's engagement lag, an input dead
+  zone): the identifier's term saw the transformed input, the node's takes the raw current.
+
+An effect is pushed whole or not at all. The baseline's band brakes (``brake_lockup``
 ``band_gain_*`` [N m/A] and ``brake_engagement`` ``band_time_constant_*`` [s] on the inputs
 ``brake1..3``) map to the node's ``band_gain`` and ``band_time_constant`` (the name each
 effect declares as its ``band_parameter``) when all three bands were identified and the data
@@ -28,10 +46,12 @@ from typing import Any
 import numpy as np
 
 from dvt_identify.effects import Effect, Term
+from dvt_identify.effects.base import SegmentView
+from dvt_identify.effects.position import ANGLE_FROM_POSITION, angle_of
 from dvt_identify.errors import PushError
 from dvt_identify.loop import Stage
 from dvt_model.config import check_parameters
-from dvt_model.contract import validate_effects
+from dvt_model.contract import CURRENT_NAMES, SPEED_NAMES, term_needs_angle, validate_effects
 from dvt_model.errors import DvtModelError
 
 MAX_RELATIVE_STD = 0.5
@@ -40,6 +60,13 @@ finite, e.g. at a bound) is not pushed: the data did not determine it."""
 
 BANDS = (1, 2, 3)
 """The band numbers of the model node's per-band parameters (inputs ``brake1..3``)."""
+
+INPUT_ALIASES: dict[str, str] = {"motor": "drive_motor"}
+"""Model input names that name a model-node current differently (the ``dvt`` description's
+``motor`` is the ``drive_motor`` current of ``/dvt/currents``)."""
+
+_PROBE_DT = 1e-3
+"""Sample time [s] of the input-transform probe when the fit keeps no segments."""
 
 
 @dataclass(frozen=True)
@@ -51,18 +78,25 @@ class Push:
     skipped: list[str] = field(default_factory=list)
 
 
-def model_node_parameters(stage: Stage, n_model_effects: int = 0) -> Push:
+def model_node_parameters(stage: Stage, n_model_effects: int = 0,
+                          input_joints: Sequence[str] | None = None) -> Push:
     """Build the model node's parameters from a fitted stage.
 
     Args:
-        stage: the final (or baseline) stage of an identification.
+        stage: the final (or baseline) stage of an identification; its fit's segments
+            (``fit.segments_``) tell whether the angles were measured (none: not known, an
+            angle-dependent term is not pushed).
         n_model_effects: how many leading effects belong to the baseline model (the bands);
             they are represented by the node's own band model (``band_gain``,
             ``band_time_constant``), not by effect terms.
+        input_joints: the ``/dvt/currents`` joint of each model input, in input order (the
+            description's ``inputs[i].joint``); ``None``: an input's own name, or its
+            :data:`INPUT_ALIASES` entry.
 
     Raises:
-        PushError: the structure has no M and D entries (not the DVT mechanical one), or the
-            model node would refuse a value (naming the parameter and the value).
+        PushError: the structure has no M and D entries (not the DVT mechanical one), the
+            model node would refuse a value (naming the parameter and the value), or
+            ``input_joints`` has the wrong length.
     """
     values = stage.parameters()
     try:
@@ -83,31 +117,162 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0) -> Push:
     out: dict[str, Any] = {"M": [float(v) for v in M], "D": [float(v) for v in D]}
     bands, skipped = _band_parameters(pairs[:n_model_effects], inputs, std)
     out.update(bands)
-    terms, not_terms = _effect_terms(pairs[n_model_effects:], outputs)
+    segments = list(getattr(fit, "segments_", None) or [])
+    ctx = _Mapping(outputs=outputs, order=_speed_order(outputs),
+                   inputs=_input_names(inputs, input_joints),
+                   transformed=_transformed_inputs(pairs, inputs,
+                                                   segments[0].dt if segments else _PROBE_DT),
+                   angle_source=_angle_source(segments))
+    terms, not_terms = _effect_terms(pairs[n_model_effects:], ctx)
     skipped = not_terms + skipped
     out["effects"] = json.dumps(terms)
     _check(out)
     return Push(parameters=out, skipped=skipped)
 
 
-def _effect_terms(pairs: Sequence[tuple[Effect, Any]], outputs: list[str]
+@dataclass(frozen=True)
+class _Mapping:
+    """How the model's terms become the node's.
+
+    Attributes:
+        outputs: the model's output (state) names.
+        order: ``order[j]`` the model output of node speed ``j``, or ``None`` (positional).
+        inputs: model input name -> node current name, or ``None`` (the node has no such one).
+        transformed: model input name -> label of the effect that transforms it.
+        angle_source: :data:`~dvt_identify.effects.position.ANGLE_FROM_POSITION` when every
+            fit segment carried the measured angles, else where the angles came from.
+    """
+
+    outputs: list[str]
+    order: list[int] | None
+    inputs: dict[str, str | None]
+    transformed: dict[str, str]
+    angle_source: str
+
+
+def _effect_terms(pairs: Sequence[tuple[Effect, Any]], ctx: _Mapping
                   ) -> tuple[list[Term], list[str]]:
     """The admissible effect terms of ``pairs`` (effect, parameters) and a line per effect
-    that is not pushed (the node has no such term, or would refuse its value)."""
+    that is not pushed (the node has no such term, its angle or input would be wrong live, or
+    the node would refuse its value)."""
     terms: list[Term] = []
     skipped: list[str] = []
     for eff, p in pairs:
-        term = eff.model_term(p, outputs)
-        if term is None:
-            skipped.append(f"{eff.label()} ({eff.why_no_term(outputs)})")
+        raw = eff.model_terms(p, ctx.outputs)
+        if not raw:
+            skipped.append(f"{eff.label()} ({eff.why_no_term(ctx.outputs)})")
+            continue
+        mapped: list[Term] = []
+        why = ""
+        for term in raw:
+            node_term, why = _node_term(term, ctx)
+            if node_term is None:
+                break
+            mapped.append(node_term)
+        if why:
+            skipped.append(f"{eff.label()} ({why})")
             continue
         try:
-            checked = validate_effects([*terms, term], n_outputs=len(outputs))
+            checked = validate_effects([*terms, *mapped], n_outputs=len(ctx.outputs))
         except DvtModelError as exc:
             skipped.append(f"{eff.label()} (the model node would refuse it: {exc})")
             continue
-        terms.append(checked[-1])
+        if any(term_needs_angle(t) for t in checked[len(terms):]) \
+                and ctx.angle_source != ANGLE_FROM_POSITION:
+            skipped.append(
+                f"{eff.label()} (its angle is the {ctx.angle_source}: its phase is relative "
+                "to the recording, the model node's angles are the measured positions; "
+                "identify on a recording with positions to push it)")
+            continue
+        terms = checked
     return terms, skipped
+
+
+def _node_term(term: Term, ctx: _Mapping) -> tuple[Term | None, str]:
+    """``term`` over the node's speeds and currents, or ``(None, why not)``."""
+    out = dict(term)
+    if ctx.order is not None:
+        for key in ("member", "angle"):
+            if key in out:
+                vec = list(out[key])
+                out[key] = [vec[i] for i in ctx.order]
+        if isinstance(out.get("output"), int) and 0 <= out["output"] < len(ctx.order):
+            out["output"] = ctx.order.index(out["output"])
+    name = out.get("input")
+    if name:
+        if name in ctx.transformed:
+            return None, (f"its input {name} is transformed by {ctx.transformed[name]} in the "
+                          "identified model; the model node's term takes the raw current")
+        node_name = ctx.inputs.get(str(name))
+        if node_name is None:
+            return None, (f"input {name!r} is not a current of the model node (expected one "
+                          f"of {list(CURRENT_NAMES)}, or input_joints naming it)")
+        out["input"] = node_name
+    return out, ""
+
+
+def _speed_order(outputs: Sequence[str]) -> list[int] | None:
+    """The model output of each node speed when the outputs are :data:`SPEED_NAMES` in some
+    order, else ``None`` (members taken as given)."""
+    if sorted(outputs) != sorted(SPEED_NAMES) or len(outputs) != len(SPEED_NAMES):
+        return None
+    return [list(outputs).index(n) for n in SPEED_NAMES]
+
+
+def _input_names(inputs: Sequence[str], input_joints: Sequence[str] | None
+                 ) -> dict[str, str | None]:
+    """Model input name -> node current name (``None``: the node has none of that name).
+
+    Raises:
+        PushError: ``input_joints`` is not one name per input.
+    """
+    if input_joints is not None and len(input_joints) != len(inputs):
+        raise PushError(f"input_joints: expected {len(inputs)} names (one per input "
+                        f"{list(inputs)}), got {list(input_joints)}")
+    out: dict[str, str | None] = {}
+    for i, name in enumerate(inputs):
+        joint = input_joints[i] if input_joints is not None else INPUT_ALIASES.get(name, name)
+        out[name] = joint if joint in CURRENT_NAMES else None
+    return out
+
+
+def _transformed_inputs(pairs: Sequence[tuple[Effect, Any]], inputs: Sequence[str],
+                        dt: float) -> dict[str, str]:
+    """Model inputs that an effect's input transform changes (found by applying the
+    transforms in model order to a probe with steps and ramps on every input), with the first
+    such effect's label."""
+    nu = len(inputs)
+    n = 64
+    k = np.arange(n, dtype=float)
+    u = np.column_stack([np.where(k < n // 4, 0.0, 1.0 + j) + 0.01 * (k % 7) - 0.5 * (k > n // 2)
+                         for j in range(nu)]) if nu else np.zeros((n, 0))
+    out: dict[str, str] = {}
+    for eff, p in pairs:
+        with np.errstate(all="ignore"):
+            ut = eff.input_transform(np.asarray(p, dtype=float), u, dt)
+        if ut is None:
+            continue
+        changed = ~np.all(np.abs(ut - u) <= 1e-12 * (1.0 + np.abs(u)), axis=0)
+        for j in np.flatnonzero(changed):
+            out.setdefault(inputs[int(j)], eff.label())
+        u = ut
+    return out
+
+
+def _angle_source(segments: Sequence[Any]) -> str:
+    """:data:`~dvt_identify.effects.position.ANGLE_FROM_POSITION` when every segment carries
+    measured angles (the identifier's own test, :func:`~dvt_identify.effects.position.angle_of`),
+    else the source of the first that does not (or why it is not known)."""
+    if not segments:
+        return "angle of unknown source (the fit keeps no segments)"
+    for seg in segments:
+        y = np.asarray(seg.y, dtype=float)
+        view = SegmentView(float(seg.dt), np.asarray(seg.u, dtype=float), y,
+                           getattr(seg, "angles", None))
+        source = angle_of(view, np.ones(y.shape[1]))[1]
+        if source != ANGLE_FROM_POSITION:
+            return source
+    return ANGLE_FROM_POSITION
 
 
 def _band_parameters(pairs: Sequence[tuple[Effect, Any]], inputs: list[str],

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from dvt_identify import style
 from dvt_identify.identifiability import experiment_for
 from dvt_identify.loop import CandidateScore, Decision, IdentificationResult, Stage
 from dvt_identify.resid import input_noise_response, robust_white_floor
@@ -367,9 +368,15 @@ def time_clock_warnings(result: IdentificationResult) -> list[str]:
 
 def _selection(result: IdentificationResult) -> dict[str, str]:
     """Which figure is which: the data that chose the effects and the test figure."""
-    held = getattr(result, "selection", "validation") == "holdout"
-    return {"chosen_on": ("the held-out last part of each estimation segment (the 'validation' "
-                          "figures are on it)" if held else "the validation bags"),
+    how = getattr(result, "selection", "validation")
+    n_bags = len({s.name.split("#")[0] for s in getattr(result, "est_segments", []) or []})
+    chosen = {"holdout": "the held-out last part of each estimation segment (the 'validation' "
+                         "figures are on it)",
+              "cv": f"leave-one-bag-out cross-validation across the {n_bags} estimation bags "
+                    "(the 'validation' figures are out of fold: each bag simulated by the "
+                    "model fitted on the other bags; the parameters are the fit on all of "
+                    "them)"}
+    return {"chosen_on": chosen.get(how, "the validation bags"),
             "validation_figures": ("selection figures: these data chose the effects, so they "
                                    "are not an independent test"),
             "test_figures": ("on test bags read after every choice: no part in fitting or "
@@ -438,6 +445,8 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
 # log-axis labels without mathtext, and encode the PNGs with fast zlib settings in a background
 # thread while the next figure is drawn (same pixels, somewhat larger files).
 
+SaveFigure = Callable[[Any, Path], Path]
+"""Writes (or, in a test, inspects) a figure and returns its path (:class:`_PngWriter`)."""
 _DPI = 110
 _PNG = {"compress_level": 1}
 _SUPERSCRIPT = str.maketrans("0123456789-−", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁻")
@@ -562,7 +571,7 @@ def envelope(t: NDArray[Any], y: NDArray[Any], bins: int) -> tuple[NDArray[Any],
 
 
 def plot_fits(result: IdentificationResult, out: Path,
-              save: _PngWriter | None = None) -> list[Path]:
+              save: SaveFigure | None = None) -> list[Path]:
     """Measured vs simulated (baseline, final) on validation data, one PNG per output.
 
     Series longer than the figure is wide are drawn as their per-pixel min/max envelope.
@@ -579,6 +588,7 @@ def plot_fits(result: IdentificationResult, out: Path,
     for seg in segs:
         offsets.append(offset)
         offset = offset + float(seg.t[-1]) + seg.dt
+    unit = result.description.structure.speed_unit
     for j, name in enumerate(names):
         fig, axes = plt.subplots(2, 1, figsize=(width_in, 6.5), sharex=True,
                                  gridspec_kw={"height_ratios": [2, 1]})
@@ -588,28 +598,29 @@ def plot_fits(result: IdentificationResult, out: Path,
             yb = result.baseline.val_pred[k][:, j]
             yf = result.final.val_pred[k][:, j]
             first = k == 0
-            axes[0].plot(*envelope(t, seg.y[:, j], bins), color="0.3", lw=0.8,
-                         label="measured" if first else None)
-            axes[0].plot(*envelope(t, yb, bins), color="tab:orange", lw=0.8,
-                         label=f"baseline ({result.baseline.val.fit_percent[j]:.1f} %)"
-                         if first else None)
+            # the predictions under the measured trace (thin, black, on top): a prediction
+            # that matches shows as a coloured edge and the measurement stays visible
+            axes[0].plot(*envelope(t, yb, bins), **style.before(
+                (f"baseline ({result.baseline.val.fit_percent[j]:.1f} %)" if both
+                 else f"baseline = final ({result.baseline.val.fit_percent[j]:.1f} %)")
+                if first else None))
             if both:
-                axes[0].plot(*envelope(t, yf, bins), color="tab:blue", lw=0.8,
-                             label=f"final ({result.final.val.fit_percent[j]:.1f} %)"
-                             if first else None)
-            axes[1].plot(*envelope(t, seg.y[:, j] - yb, bins), color="tab:orange", lw=0.6,
-                         label="baseline" if first else None)
+                axes[0].plot(*envelope(t, yf, bins), **style.after(
+                    f"final ({result.final.val.fit_percent[j]:.1f} %)" if first else None))
+            axes[0].plot(*envelope(t, seg.y[:, j], bins),
+                         **style.measured("measured" if first else None))
+            axes[1].plot(*envelope(t, seg.y[:, j] - yb, bins), **style.residual(
+                "before", ("baseline" if both else "baseline = final") if first else None))
             if both:
-                axes[1].plot(*envelope(t, seg.y[:, j] - yf, bins), color="tab:blue", lw=0.6,
-                             label="final" if first else None)
-        unit = result.description.structure.speed_unit
-        axes[0].set_ylabel(f"{name} [{unit}]")
-        _title(axes[0], f"Validation data: measured vs simulated {name}")
-        axes[0].legend(loc="upper right")
-        axes[1].set_ylabel("residual")
+                axes[1].plot(*envelope(t, seg.y[:, j] - yf, bins),
+                             **style.residual("after", "final" if first else None))
+        axes[0].set_ylabel(style.label(name, unit))
+        _title(axes[0], f"Validation data: measured vs simulated {name} (fit % in the legend)")
+        style.legend_outside(axes[0])
+        axes[1].set_ylabel(style.label("measured − simulated", unit))
         axes[1].set_xlabel("time [s] (validation segments back to back)")
-        axes[1].legend(loc="upper right")
-        _margins(fig, hspace=0.15)
+        style.legend_outside(axes[1])
+        _margins(fig, hspace=0.15, right=style.LEGEND_WIDTH_IN)
         paths.append(save(fig, out / f"fit_{name}.png"))
     return paths
 
@@ -625,7 +636,7 @@ def _stems(ax: Any, x: NDArray[Any], y: NDArray[Any], color: str, label: str) ->
 
 
 def plot_residuals(result: IdentificationResult, out: Path,
-                   save: _PngWriter | None = None) -> list[Path]:
+                   save: SaveFigure | None = None) -> list[Path]:
     """ACF (with the white bound) and CCF per input (Bartlett and white bounds), validation
     data, baseline and final (one set of stems when the final model is the baseline); one PNG
     per output. The CCF panels share one legend."""
@@ -633,46 +644,55 @@ def plot_residuals(result: IdentificationResult, out: Path,
     save = save or _PngWriter()
     paths = []
     both = result.final is not result.baseline
+    segs = _val_segments(result) or list(result.est_segments)  # est: cross-validated
+    dt = float(segs[0].dt) if segs else None
+    b_label = "baseline" if both else "baseline = final"
     for rb, rf in zip(result.baseline.resid_val, result.final.resid_val, strict=True):
         inputs = list(rf.ccf)
-        fig, axes = plt.subplots(1 + len(inputs), 1, figsize=(9, 2.6 * (1 + len(inputs))))
+        fig, axes = plt.subplots(1 + len(inputs), 1, figsize=(11, 2.6 * (1 + len(inputs))))
         axes = np.atleast_1d(axes)
         for ax in axes[1:-1]:  # the cross-correlation panels share the lag axis
             ax.sharex(axes[-1])
             ax.tick_params(labelbottom=False)
         lags = np.arange(rf.lags + 1)
-        _stems(axes[0], lags, rb.acf, "C1", "baseline" if both else "baseline (= final)")
+        _stems(axes[0], lags, rb.acf, style.BEFORE, b_label)
         if both:
-            _stems(axes[0], lags + 0.25, rf.acf, "C0", "final")
-        axes[0].axhspan(-rf.acf_bound, rf.acf_bound, color="0.85", label="99 % (white)")
+            _stems(axes[0], lags + 0.25, rf.acf, style.AFTER, "final")
+        axes[0].axhspan(-rf.acf_bound, rf.acf_bound, color=style.BAND,
+                        label="99 % per lag (white noise)")
         _title(axes[0], f"{rf.output}: residual autocorrelation (validation); Ljung-Box p "
                 f"= {rf.ljung_box_p:.2g} (final)")
-        axes[0].legend(loc="upper right", fontsize=8)
+        axes[0].set_ylabel(style.label("autocorrelation", style.DIMENSIONLESS))
+        axes[0].set_xlabel(style.lag_label(dt))
+        style.legend_outside(axes[0])
         cl = np.arange(-rf.lags, rf.lags + 1)
         for i, (ax, name) in enumerate(zip(axes[1:], inputs, strict=True)):
-            _stems(ax, cl, rb.ccf[name], "C1", "baseline" if both else "baseline (= final)")
+            _stems(ax, cl, rb.ccf[name], style.BEFORE, b_label)
             if both:
-                _stems(ax, cl + 0.25, rf.ccf[name], "C0", "final")
-            ax.axhspan(-rf.ccf_bound[name], rf.ccf_bound[name], color="0.85",
-                       label="99 % Bartlett, all lags (test)")
-            ax.axhline(rf.ccf_bound_per_lag[name], color="0.5", ls="--", lw=0.8,
+                _stems(ax, cl + 0.25, rf.ccf[name], style.AFTER, "final")
+            ax.axhspan(-rf.ccf_bound[name], rf.ccf_bound[name], color=style.BAND,
+                       label="99 % Bartlett, all lags\n(the test)")
+            ax.axhline(rf.ccf_bound_per_lag[name], color=style.BOUND, ls="--", lw=0.8,
                        label="99 % Bartlett, per lag")
-            ax.axhline(-rf.ccf_bound_per_lag[name], color="0.5", ls="--", lw=0.8)
-            ax.axhline(rf.ccf_bound_white, color="r", ls=":", lw=0.8, label="z/sqrt(N) (white)")
-            ax.axhline(-rf.ccf_bound_white, color="r", ls=":", lw=0.8)
+            ax.axhline(-rf.ccf_bound_per_lag[name], color=style.BOUND, ls="--", lw=0.8)
+            ax.axhline(rf.ccf_bound_white, color="tab:red", ls=":", lw=0.8,
+                       label="z/sqrt(N) (white)")
+            ax.axhline(-rf.ccf_bound_white, color="tab:red", ls=":", lw=0.8)
             _title(ax, f"cross-correlation residual {rf.output} vs input {name} "
                    f"(lag > 0: residual after input)")
+            ax.set_ylabel(style.label("cross-corr.", style.DIMENSIONLESS))
             if i == 0:
-                ax.legend(loc="upper right", fontsize=8,
-                          title="(all cross-correlation panels)", title_fontsize=8)
-        axes[-1].set_xlabel("lag [samples]")
-        _margins(fig, left=0.7, hspace=0.55, bottom=0.5)
+                style.legend_outside(ax, title="(all cross-\ncorrelation panels)",
+                                     title_fontsize=style.LEGEND_FONTSIZE)
+        if len(axes) > 1:
+            axes[-1].set_xlabel(style.lag_label(dt))
+        _margins(fig, left=0.8, hspace=0.8, bottom=0.5, right=style.LEGEND_WIDTH_IN)
         paths.append(save(fig, out / f"resid_{rf.output}.png"))
     return paths
 
 
 def plot_spectrum(result: IdentificationResult, out: Path,
-                  save: _PngWriter | None = None) -> list[Path]:
+                  save: SaveFigure | None = None) -> list[Path]:
     """Welch PSD of the validation residual, baseline vs final (one line when the final model
     is the baseline), one PNG per output."""
     plt = _plt()
@@ -680,25 +700,35 @@ def plot_spectrum(result: IdentificationResult, out: Path,
     paths = []
     both = result.final is not result.baseline
     floors = residual_floors(result.final, result.val_segments)
+    unit = result.description.structure.speed_unit
     for j, name in enumerate(result.description.output_names):
-        fig, ax = plt.subplots(figsize=(9, 4))
+        fig, ax = plt.subplots(figsize=(11, 4))
         sb, sf = result.baseline.spectrum_val[j], result.final.spectrum_val[j]
-        ax.loglog(sb.freq[1:], sb.psd[1:], color="tab:orange", lw=0.8,
-                  label="baseline" if both else "baseline (= final)")
+        ax.loglog(sb.freq[1:], sb.psd[1:], color=style.BEFORE, lw=0.8,
+                  label="baseline" if both else "baseline = final")
         if both:
-            ax.loglog(sf.freq[1:], sf.psd[1:], color="tab:blue", lw=0.8, label="final")
+            ax.loglog(sf.freq[1:], sf.psd[1:], color=style.AFTER, lw=0.8, label="final")
+        # the same rule as the report's text (remaining_summary): a marker only for a peak the
+        # text calls prominent; otherwise the title says where the largest bin is
         prominent = sf.peak_ratio > PEAK_RATIO and (
             j >= len(floors) or not floors[j].structured_share < STRUCTURED_SHARE)
-        ax.axvline(sf.peak_hz, color="k", ls=":", lw=0.8,
-                   label=(f"peak {sf.peak_hz:.3g} Hz ({sf.peak_ratio:.2g} x local median)"
-                          if prominent else f"largest bin {sf.peak_hz:.3g} Hz (no prominent "
-                          "peak)"))
+        if prominent:
+            ax.axvline(sf.peak_hz, color="k", ls=":", lw=0.8,
+                       label=f"peak {sf.peak_hz:.3g} Hz\n({sf.peak_ratio:.2g} x local median)")
+            note = f"peak at {sf.peak_hz:.3g} Hz (final)"
+        elif sf.peak_ratio > PEAK_RATIO:
+            note = (f"no peak above the sensor noise (final: largest bin {sf.peak_ratio:.2g} x "
+                    f"the local median, at {sf.peak_hz:.3g} Hz, residual at the noise floor)")
+        else:
+            note = (f"no prominent peak (final: largest bin {sf.peak_ratio:.2g} x the local "
+                    f"median, at {sf.peak_hz:.3g} Hz)")
         _plain_log_labels(ax, x=True, y=True)
         ax.set_xlabel("frequency [Hz]")
-        ax.set_ylabel("PSD")
-        _title(ax, f"{name}: validation residual spectrum")
-        ax.legend()
-        _margins(fig, left=0.8)
+        ax.set_ylabel(f"PSD [{style.psd_unit(unit)}]")
+        ax.set_title(f"{name}: validation residual spectrum (Welch)\n{note}", y=1.0,
+                     fontsize=10)
+        style.legend_outside(ax)
+        _margins(fig, left=0.9, right=style.LEGEND_WIDTH_IN, top=0.6)
         paths.append(save(fig, out / f"spectrum_{name}.png"))
     return paths
 
@@ -708,7 +738,7 @@ _MAX_LABEL = 44
 
 
 def plot_candidates(result: IdentificationResult, out: Path,
-                    save: _PngWriter | None = None) -> Path | None:
+                    save: SaveFigure | None = None) -> Path | None:
     """Projected scores (R^2, %) of every candidate per round, accepted ones highlighted."""
     if not result.rounds:
         return None
@@ -717,28 +747,35 @@ def plot_candidates(result: IdentificationResult, out: Path,
     accepted = {(d.round, d.score.label) for d in result.accepted}
     longest = max(len(r) for r in result.rounds)
     fig, axes = plt.subplots(len(result.rounds), 1,
-                             figsize=(9, 2.2 + 0.35 * longest * len(result.rounds)))
+                             figsize=(9, 2.6 + (0.35 * longest + 0.4) * len(result.rounds)))
     axes = np.atleast_1d(axes)
     def short(label: str) -> str:  # long labels would squeeze the bars out of the figure
         return label if len(label) <= _MAX_LABEL else label[: _MAX_LABEL - 1] + "…"
 
-    top_val = max((100 * s.r2 for r in result.rounds for s in r), default=1.0)
     for i, (ax, rnd) in enumerate(zip(axes, result.rounds, strict=True)):
         labels = [short(s.label) for s in rnd][::-1]
         vals = [100 * s.r2 for s in rnd][::-1]
-        colors = ["tab:green" if (i + 1, s.label) in accepted else "0.6" for s in rnd][::-1]
+        colors = [style.ACCEPTED if (i + 1, s.label) in accepted else style.OTHER
+                  for s in rnd][::-1]
         ax.barh(labels, vals, color=colors)
-        # a linear axis: a 0.005 % candidate draws as the sliver it is
-        ax.set_xlim(0.0, max(1.0, 1.05 * top_val))
-        _title(ax, f"round {i + 1}: residual SS explained after projection [%] "
-               "(green = accepted)")
+        # a linear axis over the whole 0-100 % range: a 0.005 % candidate draws as the sliver
+        # it is, a round where nothing explains much looks like it; the values are written
+        for y, v in enumerate(vals):
+            text = f"{v:.3g} %" if v >= 1e-3 else ("0 %" if v <= 0 else "< 0.001 %")
+            ax.text(v + 0.8, y, text, va="center", fontsize=7)
+        ax.set_xlim(0.0, 100.0)
+        _title(ax, f"round {i + 1}")
+        ax.set_xlabel(style.label("residual sum of squares explained after projection", "%"))
+    fig.suptitle("Candidates scored per round (green: accepted in that round; grey: not)",
+                 x=0.02, y=1.0 - 0.12 / fig.get_size_inches()[1], ha="left", va="top",
+                 fontsize=11)
     width = max((len(short(s.label)) for r in result.rounds for s in r), default=10)
-    _margins(fig, left=min(0.4 + 0.085 * width, 4.5), top=0.35, bottom=0.4, hspace=0.55)
+    _margins(fig, left=min(0.4 + 0.085 * width, 4.5), top=0.8, bottom=0.6, hspace=0.8)
     return save(fig, out / "candidates.png")
 
 
 def plot_linear(result: IdentificationResult, out: Path,
-                save: _PngWriter | None = None) -> Path:
+                save: SaveFigure | None = None) -> Path:
     """Step response and Bode magnitude/phase of the final model's linear part (to the
     measured outputs: ``C`` of a structure with hidden states, else C = I)."""
     plt = _plt()
@@ -757,31 +794,47 @@ def plot_linear(result: IdentificationResult, out: Path,
     tend = 6.0 / max(slow, 1e-6)
     t = np.linspace(0.0, min(tend, 1e4), 600)
     w = np.logspace(np.log10(max(slow, 1e-3) / 20), np.log10(max(fast, 1e-2) * 20), 400)
-    fig, axes = plt.subplots(3, 1, figsize=(9, 9))
+    fig, axes = plt.subplots(3, 1, figsize=(11, 9))
     Ad, Gd = zoh(A, float(t[1] - t[0]))
     H = _freq_all(A, B, w)  # (len(w), nx, nu)
     if C is not None:
         H = np.einsum("ij,wjk->wik", C, H)
+    unit = result.description.structure.speed_unit
+    in_units = {sp.name: str(getattr(sp, "unit", "") or "")
+                for sp in getattr(result.description, "inputs", ())}
+    per = {style.per_input_unit(unit, in_units.get(n, "")) for n in ins}
+    resp_unit = per.pop() if len(per) == 1 else style.per_input_unit(unit)
+    scale = float(np.max(np.abs(H), initial=0.0))
+    silent = []  # inputs without a path through the linear part (e.g. the band brakes)
     for i in range(nu):
+        if not np.any(np.abs(H[:, :, i]) > 1e-12 * max(scale, 1e-300)):
+            silent.append(ins[i])
+            continue
         d = np.tile(Gd @ B[:, i], (t.size, 1))
         yy = simulate_linear(Ad, d, np.zeros(nx))
         if C is not None:
             yy = yy @ C.T
         for j in range(ny):
-            axes[0].plot(t, yy[:, j], label=f"{ins[i]} -> {outs[j]}")
+            c = style.CHANNELS[(i * ny + j) % len(style.CHANNELS)]
+            axes[0].plot(t, yy[:, j], color=c, label=f"{ins[i]} -> {outs[j]}")
             Hj = H[:, j, i]
-            axes[1].loglog(w / (2 * np.pi), np.abs(Hj), label=f"{ins[i]} -> {outs[j]}")
-            axes[2].semilogx(w / (2 * np.pi), np.degrees(np.unwrap(np.angle(Hj))))
+            axes[1].loglog(w / (2 * np.pi), np.abs(Hj), color=c)
+            axes[2].semilogx(w / (2 * np.pi), np.degrees(np.unwrap(np.angle(Hj))), color=c)
     _plain_log_labels(axes[1], x=True, y=True)
     _plain_log_labels(axes[2], x=True)
-    _title(axes[0], "linear part of the final model: unit-step response")
+    axes[0].set_title("linear part of the final model: unit-step response"
+                      + (f"\n({', '.join(silent)}: no path through the linear part; they act "
+                         "through the model's effects)" if silent else ""), y=1.0, fontsize=10)
     axes[0].set_xlabel("time [s]")
-    axes[0].legend(fontsize=8)
-    _title(axes[1], "Bode magnitude")
-    axes[1].set_ylabel("|H|")
+    axes[0].set_ylabel(f"step response\n[{resp_unit}]")
+    style.legend_outside(axes[0])
+    _title(axes[1], "Bode magnitude (colours as above)")
+    axes[1].set_ylabel(f"|H| [{resp_unit}]")
+    axes[1].set_xlabel("frequency [Hz]")
+    _title(axes[2], "Bode phase")
     axes[2].set_ylabel("phase [deg]")
     axes[2].set_xlabel("frequency [Hz]")
-    _margins(fig, hspace=0.75)
+    _margins(fig, left=1.0, top=0.6, hspace=0.8, right=style.LEGEND_WIDTH_IN)
     return save(fig, out / "linear_step_bode.png")
 
 

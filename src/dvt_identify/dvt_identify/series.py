@@ -32,7 +32,7 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -72,9 +72,8 @@ def holdout_split(segments: Sequence[Segment], fraction: float = HOLDOUT_FRACTIO
         if k < 50 or seg.n - k < 50:
             raise DataError(f"{seg.name}: {seg.n} samples are too few to hold out "
                             f"{100 * fraction:g} % for the choice of effects (50 each)")
-        fit.append(replace(seg, t=seg.t[:k], u=seg.u[:k], y=seg.y[:k]))
-        sel.append(replace(seg, name=f"{seg.name}#holdout", t=seg.t[k:] - seg.t[k],
-                           u=seg.u[k:], y=seg.y[k:]))
+        fit.append(seg.rows(0, k))
+        sel.append(seg.rows(k, name=f"{seg.name}#holdout", from_zero=True))
     return fit, sel
 
 
@@ -115,9 +114,7 @@ def _predict(fit: OEFit, seg: Segment, init_window: int) -> Array:
         if init_window >= seg.n - 10:
             raise DataError(f"{seg.name}: init window {init_window} samples leaves fewer than "
                             f"10 of {seg.n} to score")
-        part = replace(seg, t=seg.t[:init_window], u=seg.u[:init_window],
-                       y=seg.y[:init_window])
-        x0 = fit.estimate_x0(part)
+        x0 = fit.estimate_x0(seg.rows(0, init_window))
     else:
         x0 = fit.estimate_x0(seg)
     return np.asarray(fit.model.simulate(fit.theta_, seg, x0), float)

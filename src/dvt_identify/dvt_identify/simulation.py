@@ -110,7 +110,9 @@ def zoh_decimate(seg: Segment, q: int) -> Segment:
     for j in range(seg.y.shape[1]):
         y[:, j] = np.convolve(seg.y[:, j], kern, mode="same")[:n:q]
     y[0] = seg.y[0]
+    ang = None if seg.angles is None else seg.angles[:n:q].copy()
     return replace(seg, t=seg.t[:n:q].copy(), u=np.ascontiguousarray(u), y=y, dt=seg.dt * q,
+                   angles=ang,
                    notes=(*seg.notes, f"decimated by {q} to {1.0 / (seg.dt * q):g} Hz "
                                       f"(input held: step means)"))
 
@@ -272,7 +274,7 @@ class OEModel:
             if ut is not None:
                 u = ut
         # effects see the transformed inputs (a brake's capacity follows its engagement lag)
-        view = SegmentView(seg.dt, u, seg.y)
+        view = SegmentView(seg.dt, u, seg.y, seg.angles)
         w = u @ B.T
         smooth: list[tuple[Array, SmoothLaw]] = []
         dry: list[tuple[Array, Array | float, float]] = []

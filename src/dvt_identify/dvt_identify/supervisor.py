@@ -278,6 +278,10 @@ class Supervisor:
         self._detected = 0.0
         self._push_s = 0.0
         self._fit: FitOutcome | None = None
+        self.ignore_before_s = -math.inf
+        """Alarms detected before this time [s] are ignored (the node sets its start: the
+        alarm topic is latched, a restarted identifier must not refit old changes)."""
+        self.ignored_alarms = 0
 
     # ---------------------------------------------------------------- helpers
     def _step(self, now: float, state: State, message: str, level: int = 0,
@@ -323,6 +327,13 @@ class Supervisor:
                 raise SupervisorError(f"alarm.{key}: expected a time [s], got {v!r}")
         change = float(a["change_s"])
         name = str(a.get("name", ""))
+        if float(a["stamp_s"]) < self.ignore_before_s:
+            self.ignored_alarms += 1
+            return [Diagnostic(0, f"supervisor: alarm on {name or '?'} detected at "
+                                  f"{float(a['stamp_s']):.3f} s, before this supervisor started "
+                                  f"({self.ignore_before_s:.3f} s): an earlier run's, ignored",
+                               {"state": self.state.value,
+                                "ignored_alarms": str(self.ignored_alarms)})]
         if self.state is State.IDLE:
             self.episodes += 1
             self._ep = {

@@ -172,11 +172,13 @@ def search_unlisted(fit: OEFit, segments: Sequence[Segment], libraries: Sequence
     prop = best.effect
     if not isinstance(prop, Unlisted):  # pragma: no cover - built by Unlisted.subset above
         return best
-    _, source = angle_of(SegmentView(segments[0].dt, segments[0].u, segments[0].y),
+    first = segments[0]
+    _, source = angle_of(SegmentView(first.dt, first.u, first.y, first.angles),
                          prop.require_member())
     best.extra.update({
         "formula": prop.formula([s.initial for s in prop.params]), "member": prop.member_name,
-        "angle_source": source,
+        "angle_source": source, **({"mesh_angles": prop.mesh_angles()}
+                                   if prop.mesh_angles() else {}),
         "search": {"method": "orthogonal matching pursuit on the projected residual",
                    "stopping_rule": f"m ln(SSE_old/SSE_new) > ln m + 2 ln L = {penalty:.4g}",
                    "library_size": n_lib, "libraries": searched},

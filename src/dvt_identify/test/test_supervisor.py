@@ -304,3 +304,15 @@ def test_estimation_starts_after_change_plus_settle_when_detected_early() -> Non
     assert sup2.tick(131.9) == []
     (req2,) = _of(sup2.tick(132.0), RequestFit)
     assert req2.estimation == pytest.approx((103.0, 122.0))
+
+
+def test_alarms_from_before_the_start_are_ignored() -> None:
+    """The alarm topic is latched: a restarted identifier gets an earlier run's alarms first."""
+    sup = Supervisor(CFG)
+    sup.ignore_before_s = 500.0
+    acts = sup.on_alarm(_alarm(100.0, 102.0), 600.0)
+    assert sup.state is State.IDLE and sup.episodes == 0 and sup.ignored_alarms == 1
+    (diag,) = _of(acts, Diagnostic)
+    assert "before this supervisor started" in diag.message and "ignored" in diag.message
+    sup.on_alarm(_alarm(600.0, 601.0), 601.0)
+    assert sup.state is State.WAITING and sup.episodes == 1

@@ -15,7 +15,9 @@ Admissibility beyond each parameter's own type, length and range:
 - ``A``: stable, every eigenvalue with a negative real part; ``A`` and ``B`` both given or
   both empty; the linear model carries no force terms (they need the physics).
 - ``effects``: :func:`dvt_model.contract.validate_effects` (physically admissible terms, at
-  most :data:`~dvt_model.contract.MAX_EFFECT_TERMS`).
+  most :data:`~dvt_model.contract.MAX_EFFECT_TERMS`); the speed-dependent terms become the
+  hybrid model's ``extra_force``, the angle-dependent ones (``gravity``, ``angle_periodic``,
+  ``library``) its ``angle_input_force`` (:mod:`dvt_model.terms`).
 - ``params``: a bundled parameter set or a readable, valid YAML file.
 - ``load``: ``none``, a preset of :mod:`dvt_model.load` or a readable, valid load YAML; not
   with the linear model (the load acts through the physics).
@@ -276,7 +278,7 @@ def resolve(values: Mapping[str, Any]) -> ModelConfig:
                              "set_parameters_atomically)")
         linear = check_linear(a_raw, b_raw)
     terms = parse_terms(str(v["effects"]))
-    if linear is not None and terms.forces:
+    if linear is not None and (terms.forces or terms.has_angle_terms):
         raise ModelError("effects: force terms need the physical model (clear A and B)")
     load = _joint_load(str(v["load"]))
     if linear is not None and load is not None:
@@ -319,13 +321,18 @@ def build_predictor(values: Mapping[str, Any]) -> tuple[Predictor, str]:
     else:
         model = HybridModel(cfg.rigid, cfg.brake,
                             extra_force=terms.extra_force if terms.forces else None,
-                            load=cfg.load)
+                            load=cfg.load,
+                            angle_input_force=(terms.angle_force if terms.has_angle_terms
+                                               else None))
         desc = f"hybrid physics '{cfg.params.name}'" + (
             f" with {list(cfg.changes)}" if cfg.changes else "")
         if cfg.load is not None:
             desc += f", load '{cfg.load.name}'"
     if not terms.empty:
-        desc += f" + {len(terms.forces)} force term(s), delay {terms.delay:g} s"
+        desc += f" + {len(terms.forces)} force term(s)"
+        if terms.has_angle_terms:
+            desc += f", {len(terms.angle_terms)} angle term(s)"
+        desc += f", delay {terms.delay:g} s"
     predictor = Predictor(model, cfg.brake, mode="reanchor" if cfg.mode == "reanchor"
                           else "simulate", reanchor_period=cfg.reanchor_period,
                           gap_reset=cfg.gap_reset, output_delay=terms.delay,

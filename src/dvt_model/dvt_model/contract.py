@@ -11,6 +11,7 @@ module is its executable form. Units are SI, conventions REP-103.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -140,22 +141,57 @@ class TermParam:
 
 
 @dataclass(frozen=True)
+class TermChoice:
+    """One enumerated (string) field of an effect term: the admissible values and the default
+    (``None``: the field is required)."""
+
+    name: str
+    choices: tuple[str, ...]
+    default: str | None = None
+    doc: str = ""
+
+    def check(self, value: Any, where: str) -> str:
+        """The value, or :class:`ContractError` naming ``where``, field, value and choices."""
+        if not isinstance(value, str) or value not in self.choices:
+            raise ContractError(f"{where}.{self.name}: expected one of {list(self.choices)}, "
+                                f"got {short_repr(value)}" + (f" ({self.doc})" if self.doc
+                                                              else ""))
+        return value
+
+
+@dataclass(frozen=True)
 class TermKind:
     """A kind of effect term: a generalised force on a member, or an output transform."""
 
     kind: str
     params: tuple[TermParam, ...]
     member: bool
-    """True: a force on the member speed ``v = member . omega`` (field ``member``, 2 numbers)."""
+    """True: a force on the member ``member . omega`` (field ``member``, 2 numbers)."""
     output: bool = False
     """True: the term names an output index (field ``output``)."""
     doc: str = ""
+    choices: tuple[TermChoice, ...] = ()
+    """The term's enumerated string fields."""
+    driving: bool = False
+    """True: the law is a torque *on* the member (generalised torque ``+member * tau``, the
+    identifier's exogenous-force sign); False: a resisting force (``-member * F(v)``)."""
+    angle: bool = False
+    """True: the law depends on an angle ``theta_a = angle . theta``; the optional field
+    ``angle`` (2 numbers) is its form, by default the member's (e.g. a mesh ripple on the sun
+    shaft locked to the sun's angle relative to its carrier)."""
 
     def param(self, name: str) -> TermParam:
         for p in self.params:
             if p.name == name:
                 return p
         raise KeyError(name)
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """Every field the kind takes besides ``kind``."""
+        return (*(("member",) if self.member else ()), *(("angle",) if self.angle else ()),
+                *(("output",) if self.output else ()),
+                *(p.name for p in self.params), *(c.name for c in self.choices))
 
 
 MAX_MEMBER = 1.0e3
@@ -170,6 +206,18 @@ DEFAULT_EPS = 0.5
 _EPS = TermParam("eps", "rad/s", 1e-6, 1e3, default=DEFAULT_EPS,
                  doc="speed below which the sign is smoothed")
 _TORQUE_MAX = 1e4
+_MAX_REDUCTION = 1e6
+"""Largest admissible ``reduction`` of a ``gravity`` term [1]."""
+_MAX_ORDER = 1e4
+"""Largest admissible angle order [1/rev] (a mesh order is a tooth count, below 200)."""
+_MAX_COEFFICIENT = 1e6
+"""Largest admissible |k| of a ``library`` term (its unit depends on the factors)."""
+_ORDER = TermParam("order", "1/rev", 0.0, _MAX_ORDER,
+                   doc="angle order per member revolution, >= 0")
+LIBRARY_SPEED_FACTORS: tuple[str, ...] = ("", "sign", "abs_sq", "cube")
+"""Speed factors of a ``library`` term: 1, ``sign_eps(v)``, ``|v| v``, ``v^3``."""
+LIBRARY_TRIG: tuple[str, ...] = ("", "cos", "sin")
+"""Angle factors of a ``library`` term: 1, ``cos(order theta_a)``, ``sin(order theta_a)``."""
 
 EFFECT_TERMS: dict[str, TermKind] = {k.kind: k for k in (
     TermKind("coulomb", (
@@ -194,13 +242,83 @@ EFFECT_TERMS: dict[str, TermKind] = {k.kind: k for k in (
         TermParam("gain", "1", -0.5, 1.0, lo_open=True,
                   doc="relative sensor scale error: output scaled by 1 + gain > 0.5"),),
         member=False, output=True, doc="output scaled by 1 + gain"),
+    # position-dependent terms: a torque ON the member (driving sign, like the identifier's
+    # exogenous forces), theta_a = angle . theta their angle [rad] (default: the member's)
+    TermKind("gravity", (
+        TermParam("a", "N m", -_TORQUE_MAX, _TORQUE_MAX, doc="cosine amplitude"),
+        TermParam("b", "N m", -_TORQUE_MAX, _TORQUE_MAX, doc="sine amplitude"),
+        TermParam("reduction", "1", 0.0, _MAX_REDUCTION, lo_open=True, default=1.0,
+                  doc="member turns per turn of the loaded shaft, > 0")),
+        member=True, driving=True, angle=True,
+        doc="a cos(theta_a / reduction) + b sin(theta_a / reduction)"),
+    TermKind("angle_periodic", (
+        TermParam("a", "N m", -_TORQUE_MAX, _TORQUE_MAX, doc="cosine amplitude"),
+        TermParam("b", "N m", -_TORQUE_MAX, _TORQUE_MAX, doc="sine amplitude"),
+        _ORDER), member=True, driving=True, angle=True,
+        doc="a cos(order theta_a) + b sin(order theta_a)"),
+    TermKind("library", (
+        TermParam("k", "N m per unit of the factors", -_MAX_COEFFICIENT, _MAX_COEFFICIENT,
+                  doc="coefficient"),
+        dataclasses.replace(_ORDER, default=0.0,
+                            doc="angle order per member revolution, >= 0 (ignored without "
+                                "trig)"),
+        _EPS), member=True, driving=True, angle=True,
+        choices=(TermChoice("speed", LIBRARY_SPEED_FACTORS, default="",
+                            doc="speed factor S(v): '' 1, 'sign' sign_eps(v), 'abs_sq' |v| v, "
+                                "'cube' v^3"),
+                 TermChoice("trig", LIBRARY_TRIG, default="",
+                            doc="angle factor T: '' 1, 'cos' cos(order theta_a), 'sin' "
+                                "sin(order theta_a)"),
+                 TermChoice("input", ("", *CURRENT_NAMES), default="",
+                            doc="input factor u [A]: '' 1, else that current of "
+                                "/dvt/currents")),
+        doc="k S(v) T(order theta_a) u"),
 )}
-"""Every effect term the model node understands, by ``kind``."""
+"""Every effect term the model node understands, by ``kind``.
+
+Force terms act on a member ``m`` (field ``member``, 2 numbers over ``(sun_shaft, carrier3)``):
+its speed is ``v = m . omega`` [rad/s] and a torque ``tau`` on it is the generalised torque
+``m * tau``. ``coulomb``, ``stribeck``, ``windage`` and ``viscous`` are resisting laws ``F(v)``
+(generalised torque ``-m * F(v)``); ``gravity``, ``angle_periodic`` and ``library``
+(:attr:`TermKind.driving`) are torques *on* the member (``+m * tau``), the sign of the
+identifier's exogenous member forces (``dvt_identify.effects.base``), and depend on the angle
+``theta_a = a . theta`` [rad] with ``a`` the optional field ``angle`` (default ``m``: the
+member's own angle; ``theta`` the model's angles, anchored to the measured positions).
+``sign_eps(v) = tanh(v / eps)``. The model node holds each torque over a step ``dt`` of its
+simulation; the angle factors are then their means over the angle interval ``[theta_a,
+theta_a + (a . omega) dt]`` (a ripple faster than the step does not alias), as the
+identifier's are over the measured interval."""
+
+ANGLE_TERM_KINDS: tuple[str, ...] = ("gravity", "angle_periodic", "library")
+"""Kinds whose law the model node evaluates on the angles (and inputs): the driving torques."""
+
+
+def term_needs_angle(term: Mapping[str, Any]) -> bool:
+    """Whether a (validated) term's value depends on its angle: ``gravity``,
+    ``angle_periodic`` and a ``library`` term with a ``trig`` factor. Its phase is then only
+    right live when the angle it was identified on was the measured position (the model
+    node's angles are anchored to the measured ones)."""
+    kind = term.get("kind")
+    return kind in ("gravity", "angle_periodic") or (kind == "library"
+                                                      and bool(term.get("trig")))
+
+
+def _form(raw: Any, where: str, n_outputs: int) -> list[float]:
+    """A member (or angle) form: ``n_outputs`` finite numbers, not all zero, each at most
+    :data:`MAX_MEMBER`; else :class:`ContractError` naming ``where`` and the value."""
+    ok = (isinstance(raw, Sequence) and not isinstance(raw, str) and len(raw) == n_outputs
+          and all(not isinstance(v, bool) and isinstance(v, int | float)
+                  and math.isfinite(v) and abs(v) <= MAX_MEMBER for v in raw))
+    if not ok or not any(float(v) != 0.0 for v in raw):
+        raise ContractError(f"{where}: expected {n_outputs} finite numbers, not all "
+                            f"zero, each |m| <= {MAX_MEMBER:g}, got {short_repr(raw)}")
+    return [float(v) for v in raw]
 
 
 def validate_term(entry: Any, where: str = "effects[0]",
                   n_outputs: int = len(SPEED_NAMES)) -> dict[str, Any]:
-    """Check one effect term and return it normalised (defaults filled, floats).
+    """Check one effect term and return it normalised (defaults filled, floats; enumerated
+    fields as their string).
 
     Raises:
         ContractError: naming ``where``, the field and the value.
@@ -212,25 +330,16 @@ def validate_term(entry: Any, where: str = "effects[0]",
     if spec is None:
         raise ContractError(f"{where}.kind: expected one of {sorted(EFFECT_TERMS)}, "
                             f"got {short_repr(kind)}")
-    allowed = {"kind", *(p.name for p in spec.params)}
-    if spec.member:
-        allowed.add("member")
-    if spec.output:
-        allowed.add("output")
+    allowed = {"kind", *spec.fields}
     unknown = sorted(set(entry) - allowed)
     if unknown:
         raise ContractError(f"{where}: unknown field(s) {short_repr(unknown)} for kind {kind!r} "
                             f"(expected {sorted(allowed)})")
     out: dict[str, Any] = {"kind": kind}
     if spec.member:
-        raw: Any = entry.get("member")
-        ok = (isinstance(raw, Sequence) and not isinstance(raw, str) and len(raw) == n_outputs
-              and all(not isinstance(v, bool) and isinstance(v, int | float)
-                      and math.isfinite(v) and abs(v) <= MAX_MEMBER for v in raw))
-        if not ok or not any(float(v) != 0.0 for v in raw):
-            raise ContractError(f"{where}.member: expected {n_outputs} finite numbers, not all "
-                                f"zero, each |m| <= {MAX_MEMBER:g}, got {short_repr(raw)}")
-        out["member"] = [float(v) for v in raw]
+        out["member"] = _form(entry.get("member"), f"{where}.member", n_outputs)
+    if spec.angle and "angle" in entry:
+        out["angle"] = _form(entry["angle"], f"{where}.angle", n_outputs)
     if spec.output:
         o = entry.get("output")
         if isinstance(o, bool) or not isinstance(o, int) or not 0 <= o < n_outputs:
@@ -245,6 +354,14 @@ def validate_term(entry: Any, where: str = "effects[0]",
         else:
             raise ContractError(f"{where}.{p.name}: missing (kind {kind!r} needs "
                                 f"{[q.name for q in spec.params if q.default is None]})")
+    for c in spec.choices:
+        if c.name in entry:
+            out[c.name] = c.check(entry[c.name], where)
+        elif c.default is not None:
+            out[c.name] = c.default
+        else:
+            raise ContractError(f"{where}.{c.name}: missing (kind {kind!r}: one of "
+                                f"{list(c.choices)})")
     return out
 
 

@@ -24,8 +24,12 @@ A ring slipping with the band on gets ``-T_cap sign(omega_ring)`` on its general
 An optional ``extra_force(omega, t) -> (2,)`` adds generalised torques (the plant's hidden
 effects), evaluated at the step start and held over the step; so do the angle-dependent ones:
 an optional joint ``load`` (:class:`dvt_model.load.JointLoad`: its reflected inertia is added
-to ``M`` at carrier 3, its gravity torque depends on the carrier-3 angle) and an optional
-``angle_force(theta, omega, t) -> (2,)``.
+to ``M`` at carrier 3, its gravity torque depends on the carrier-3 angle), an optional
+``angle_force(theta, omega, t) -> (2,)`` and an optional ``angle_input_force(theta, omega, t,
+u, dt) -> (2,)`` that also gets the inputs ``u = (i_motor, i_brake (3,))`` [A] held over the
+step and the length ``dt`` [s] of the (sub-)step it is held over (0 for an instantaneous value:
+the release, lock and holding-torque checks), so it can return its mean over the step (the
+model node's identified effect terms, :meth:`dvt_model.terms.Terms.angle_force`).
 
 Angles: the step integrates ``theta`` exactly along the same zero-order-hold solution as the
 speeds (the integral of ``N z`` from the augmented matrix exponential), so ``theta`` is
@@ -53,6 +57,10 @@ Array = NDArray[np.float64]
 ExtraForce = Callable[[Array, float], Array]
 AngleForce = Callable[[Array, Array, float], Array]
 """``(theta (2,) [rad], omega (2,) [rad/s], t [s]) -> generalised torque (2,) [N m]``."""
+AngleInputForce = Callable[[Array, Array, float, Array, float], Array]
+"""``(theta (2,) [rad], omega (2,) [rad/s], t [s], u (4,) [A], dt [s]) -> generalised torque
+(2,) [N m]``: ``u`` the drive-motor and brake currents held over the step, ``dt`` the step the
+torque is held over (0: the instantaneous value)."""
 Engagement = Callable[[Array, Array, float, Array], tuple[Array, Array]]
 """``(capacity (3,), static target (3,), dt, ring speeds (3,)) -> (capacity at end, mean)``."""
 LockSet = tuple[bool, bool, bool]
@@ -139,12 +147,15 @@ class HybridModel:
             its gravity torque is a generalised force depending on the carrier-3 angle.
         angle_force: optional generalised torque ``f(theta (2,), omega (2,), t) -> (2,)``
             [N m] depending on the angles (e.g. the plant's position-dependent hidden effects).
+        angle_input_force: optional generalised torque ``f(theta, omega, t, u (4,), dt)`` [N m]
+            depending on the angles and the inputs (:data:`AngleInputForce`).
     """
 
     def __init__(self, rigid: RigidModel, brake: BrakeParams,
                  extra_force: ExtraForce | None = None,
                  engagement: Engagement | None = None, *, load: JointLoad | None = None,
-                 angle_force: AngleForce | None = None) -> None:
+                 angle_force: AngleForce | None = None,
+                 angle_input_force: AngleInputForce | None = None) -> None:
         if load is not None:
             c3 = rigid.kin.vector("carrier3")
             rigid = dataclasses.replace(
@@ -155,6 +166,7 @@ class HybridModel:
         self.engagement = engagement
         self.load = load
         self.angle_force = angle_force
+        self.angle_input_force = angle_input_force
         self._ring = np.asarray(rigid.Q_brake, dtype=float)  # (2, 3) ring speed forms
         self._modes: dict[tuple[LockSet, float], _Mode] = {}
         self._bases: dict[LockSet, tuple[Array, Array, Array]] = {}
@@ -163,10 +175,11 @@ class HybridModel:
     @classmethod
     def from_params(cls, params: TransmissionParams, extra_force: ExtraForce | None = None,
                     engagement: Engagement | None = None, *, load: JointLoad | None = None,
-                    angle_force: AngleForce | None = None) -> HybridModel:
+                    angle_force: AngleForce | None = None,
+                    angle_input_force: AngleInputForce | None = None) -> HybridModel:
         """Build from a parameter set (optionally with a joint load and angle forces)."""
         return cls(rigid_model(params), params.brake, extra_force, engagement, load=load,
-                   angle_force=angle_force)
+                   angle_force=angle_force, angle_input_force=angle_input_force)
 
     # ------------------------------------------------------------------ helpers
     def ring_speeds(self, omega: ArrayLike) -> Array:
@@ -215,9 +228,11 @@ class HybridModel:
         e = expm(big * dt)
         return _Mode(N, Mr_inv, e[:n, :n], e[:n, n:n + 2], e[n + 2:, :n], e[n + 2:, n:n + 2])
 
-    def _forces(self, omega: Array, t: float, i_motor: float, cap: Array,
-                signs: Array, locked: LockSet, theta: Array) -> Array:
-        f = self.rigid.Q_motor * (self.rigid.motor_constant * i_motor)
+    def _forces(self, omega: Array, t: float, u: Array, cap: Array,
+                signs: Array, locked: LockSet, theta: Array, dt: float = 0.0) -> Array:
+        """Generalised force at the step start; ``u`` = (i_motor, i_brake (3,)) [A], ``dt``
+        the step it is held over (0: instantaneous)."""
+        f = self.rigid.Q_motor * (self.rigid.motor_constant * u[0])
         for k in range(3):
             if not locked[k] and signs[k] != 0.0 and cap[k] > _ENGAGED:
                 f = f - self._ring[:, k] * (cap[k] * signs[k])
@@ -227,10 +242,15 @@ class HybridModel:
             f = f + self.load.generalised_force(theta, omega)
         if self.angle_force is not None:
             f = f + np.asarray(self.angle_force(theta, omega, t), dtype=float)
+        if self.angle_input_force is not None:
+            f = f + np.asarray(self.angle_input_force(theta, omega, t, u, dt), dtype=float)
         return np.asarray(f)
 
-    def angle_forces(self, theta: ArrayLike, omega: ArrayLike, t: float = 0.0) -> Array:
-        """The angle-dependent generalised torque (load + ``angle_force``) (2,) [N m]."""
+    def angle_forces(self, theta: ArrayLike, omega: ArrayLike, t: float = 0.0,
+                     u: ArrayLike | None = None, dt: float = 0.0) -> Array:
+        """The angle-dependent generalised torque (load + ``angle_force`` +
+        ``angle_input_force`` at inputs ``u`` (4,) [A], default 0, held over ``dt`` [s])
+        (2,) [N m]."""
         th = np.asarray(theta, dtype=float).reshape(2)
         w = np.asarray(omega, dtype=float).reshape(2)
         f = np.zeros(2)
@@ -238,6 +258,9 @@ class HybridModel:
             f = f + self.load.generalised_force(th, w)
         if self.angle_force is not None:
             f = f + np.asarray(self.angle_force(th, w, t), dtype=float)
+        if self.angle_input_force is not None:
+            uu = np.zeros(4) if u is None else np.asarray(u, dtype=float).reshape(4)
+            f = f + np.asarray(self.angle_input_force(th, w, t, uu, dt), dtype=float)
         return f
 
     def holding_torques(self, omega: Array, f: Array, locked: LockSet) -> Array:
@@ -292,6 +315,9 @@ class HybridModel:
         if not dt > 0.0:
             raise SimulationError(f"dt: expected > 0 s, got {dt!r}")
         ib = np.asarray(i_brake, dtype=float).reshape(3)
+        u = np.empty(4)
+        u[0] = i_motor
+        u[1:] = ib
         target = band_torques(self.brake, ib)
         omega = state.omega
         theta = state.theta
@@ -308,7 +334,7 @@ class HybridModel:
         for _ in range(3):
             if not any(locked):
                 break
-            f = self._forces(omega, state.t, i_motor, cap_mean, signs, locked, theta)
+            f = self._forces(omega, state.t, u, cap_mean, signs, locked, theta)
             lam = self.holding_torques(omega, f, locked)
             excess = [abs(lam[k]) / max(hold_cap[k], _ENGAGED) if locked[k] else 0.0
                       for k in range(3)]
@@ -320,27 +346,27 @@ class HybridModel:
         # engagement at rest: a still ring with an engaged band locks if it can be held
         for k in range(3):
             if (not locked[k] and cap_mean[k] > _ENGAGED and abs(rings[k]) < _ZERO_SPEED
-                    and self._can_lock(omega, state.t, i_motor, cap_mean, signs, locked, k,
+                    and self._can_lock(omega, state.t, u, cap_mean, signs, locked, k,
                                        theta)):
                 locked = _with(locked, k, True)
                 omega = self._project(omega, locked)
-        omega, locked, signs, dtheta = self._advance(omega, state.t, dt, i_motor, cap_mean,
+        omega, locked, signs, dtheta = self._advance(omega, state.t, dt, u, cap_mean,
                                                      signs, locked, theta, depth=0)
         theta = theta + dtheta
-        f = self._forces(omega, state.t + dt, i_motor, cap_end, signs, locked, theta)
+        f = self._forces(omega, state.t + dt, u, cap_end, signs, locked, theta)
         holding = self.holding_torques(omega, f, locked)
         return HybridState(t=state.t + dt, omega=omega, capacity=cap_end, locked=locked,
                            holding=holding, theta=theta)
 
-    def _can_lock(self, omega: Array, t: float, i_motor: float, cap: Array, signs: Array,
+    def _can_lock(self, omega: Array, t: float, u: Array, cap: Array, signs: Array,
                   locked: LockSet, k: int, theta: Array) -> bool:
         trial = _with(locked, k, True)
         w = self._project(omega, trial)
-        f = self._forces(w, t, i_motor, cap, signs, trial, theta)
+        f = self._forces(w, t, u, cap, signs, trial, theta)
         lam = self.holding_torques(w, f, trial)
         return bool(abs(lam[k]) <= self.brake.static_factor * cap[k])
 
-    def _advance(self, omega: Array, t: float, dt: float, i_motor: float, cap: Array,
+    def _advance(self, omega: Array, t: float, dt: float, u: Array, cap: Array,
                  signs: Array, locked: LockSet, theta: Array, depth: int
                  ) -> tuple[Array, LockSet, Array, Array]:
         """Advance over ``dt``; returns speeds, lock set, slip signs and the angle change."""
@@ -348,7 +374,7 @@ class HybridModel:
             mode = self._mode(locked, dt)
         else:
             mode = self._discretise(locked, dt)
-        f = self._forces(omega, t, i_motor, cap, signs, locked, theta)
+        f = self._forces(omega, t, u, cap, signs, locked, theta, dt)
         if mode.N.shape[1] == 0:
             return np.zeros(2), locked, signs, np.zeros(2)
         z = mode.N.T @ omega
@@ -369,11 +395,11 @@ class HybridModel:
         if first < 0:
             return omega_end, locked, signs, dtheta
         t1 = max(frac * dt, 1e-9)
-        w_mid, locked, signs, d1 = self._advance(omega, t, t1, i_motor, cap, signs, locked,
+        w_mid, locked, signs, d1 = self._advance(omega, t, t1, u, cap, signs, locked,
                                                  theta, depth + 1)
         th_mid = theta + d1
         k = first
-        if self._can_lock(w_mid, t + t1, i_motor, cap, signs, locked, k, th_mid):
+        if self._can_lock(w_mid, t + t1, u, cap, signs, locked, k, th_mid):
             locked = _with(locked, k, True)
             w_mid = self._project(w_mid, locked)
         else:
@@ -382,7 +408,7 @@ class HybridModel:
         rest = dt - t1
         if rest <= 1e-12:
             return w_mid, locked, signs, d1
-        w_end, locked, signs, d2 = self._advance(w_mid, t + t1, rest, i_motor, cap, signs,
+        w_end, locked, signs, d2 = self._advance(w_mid, t + t1, rest, u, cap, signs,
                                                  locked, th_mid, depth + 1)
         return w_end, locked, signs, d1 + d2
 

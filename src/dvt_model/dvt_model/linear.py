@@ -42,6 +42,7 @@ class LinearModel:
             raise ModelError(f"B: expected shape (2, 2) or (2, 4), got {b.shape}")
         self.B = check_matrix(b, "B", b.shape)
         self._cache: dict[float, tuple[Array, Array]] = {}
+        self._last: tuple[float, tuple[Array, Array]] | None = None  # (dt, its discretisation)
 
     @property
     def n_inputs(self) -> int:
@@ -49,9 +50,13 @@ class LinearModel:
 
     def discretise(self, dt: float) -> tuple[Array, Array]:
         """Exact ZOH ``(Phi (2, 2), Gamma (2, m))`` for step ``dt`` [s] (cached)."""
+        last = self._last
+        if last is not None and last[0] == dt:  # the steady rate: skip the rounding and lookup
+            return last[1]
         key = round(dt, 12)
         hit = self._cache.get(key)
         if hit is not None:
+            self._last = (dt, hit)
             return hit
         m = self.n_inputs
         big = np.zeros((2 + m, 2 + m))
@@ -61,6 +66,7 @@ class LinearModel:
         out = (e[:2, :2], e[:2, 2:])
         if len(self._cache) < 64:
             self._cache[key] = out
+            self._last = (dt, out)
         return out
 
     def step(self, omega: Array, dt: float, u: Array) -> Array:

@@ -41,10 +41,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from dvt_model.errors import ModelError
+from dvt_model.presets import read_yaml_setting
 
 __all__ = [
     "INCH",
@@ -327,16 +327,6 @@ def load_joint_load(name_or_path: str | Path) -> JointLoad | None:
             return None
         if name_or_path in LOAD_PRESETS:
             return LOAD_PRESETS[name_or_path]
-    path = Path(name_or_path)
-    if not (path.suffix in (".yaml", ".yml") or path.exists()):
-        raise ModelError(f"load: unknown load {str(name_or_path)!r}: expected one of "
-                         f"{available_loads()} or a path to a .yaml file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ModelError(f"load: {path}: cannot read: {exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ModelError(f"load: {path}: not valid YAML: {exc}") from exc
-    return parse_joint_load(data, source=str(path))
+    data, source = read_yaml_setting(name_or_path, what="load", error=ModelError,
+                                     names=available_loads())
+    return parse_joint_load(data, source=source)

@@ -14,15 +14,14 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from dvt_model.errors import ParameterError
+from dvt_model.presets import bundled_names, read_yaml_setting
 
 Lumping = Literal["thesis", "complete"]
 
@@ -123,8 +122,7 @@ class TransmissionParams:
 
 def available_parameter_sets() -> list[str]:
     """Names of the bundled parameter sets."""
-    root = resources.files("dvt_model") / "param_sets"
-    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
+    return bundled_names("dvt_model", "param_sets")
 
 
 def load_parameters(name_or_path: str | Path) -> TransmissionParams:
@@ -133,27 +131,8 @@ def load_parameters(name_or_path: str | Path) -> TransmissionParams:
     Raises:
         ParameterError: unknown name, unreadable file, or invalid content.
     """
-    text: str
-    source: str
-    candidate = Path(name_or_path)
-    if isinstance(name_or_path, str) and name_or_path in available_parameter_sets():
-        source = f"{name_or_path}.yaml"
-        text = (resources.files("dvt_model") / "param_sets" / source).read_text(encoding="utf-8")
-    elif candidate.suffix in (".yaml", ".yml") or candidate.exists():
-        source = str(candidate)
-        try:
-            text = candidate.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ParameterError(f"{source}: cannot read parameter file: {exc}") from exc
-    else:
-        raise ParameterError(
-            f"unknown parameter set {str(name_or_path)!r}: expected one of "
-            f"{available_parameter_sets()} or a path to a .yaml file"
-        )
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ParameterError(f"{source}: not valid YAML: {exc}") from exc
+    data, source = read_yaml_setting(name_or_path, what="parameter set", error=ParameterError,
+                                     package="dvt_model", directory="param_sets")
     return parse_parameters(data, source=source)
 
 

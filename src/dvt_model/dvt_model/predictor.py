@@ -38,6 +38,7 @@ node reports it in ``/diagnostics`` with level WARN) and the prediction is the a
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
@@ -185,6 +186,7 @@ class Predictor:
                         return False
                     self._state = self.model.step(self._state, dt, im_prev, ib_prev)
                     omega = self._state.omega
+                    theta = self._state.theta
                 else:
                     target = band_torques(self.brake, ib_prev)
                     cap_end, cap_mean = capacity_step(self._cap, target, dt,
@@ -195,10 +197,13 @@ class Predictor:
                     self._theta = self._theta + 0.5 * dt * (w0 + self._omega)
                     self._cap = cap_end
                     omega = self._omega
+                    theta = self._theta
         except (DvtModelError, ArithmeticError, np.linalg.LinAlgError):
             return False
-        return bool(np.all(np.isfinite(omega)) and np.max(np.abs(omega)) <= OMEGA_GUARD
-                    and np.all(np.isfinite(self.theta)))
+        # plain floats: a few small-array numpy reductions cost more than the checks
+        speeds = omega.tolist()
+        return (_all_finite(speeds) and max(map(abs, speeds)) <= OMEGA_GUARD
+                and _all_finite(theta.tolist()))
 
     def update(self, stamp: float, i_motor: float, i_brake: ArrayLike,
                omega_measured: ArrayLike, theta_measured: ArrayLike | None = None
@@ -218,13 +223,13 @@ class Predictor:
         """
         ib = np.asarray(i_brake, dtype=float).reshape(3)
         meas = np.asarray(omega_measured, dtype=float).reshape(2)
-        if not (np.isfinite(i_motor) and np.all(np.isfinite(ib)) and np.all(np.isfinite(meas))
-                and np.isfinite(stamp)):
+        if not (math.isfinite(i_motor) and _all_finite(ib.tolist())
+                and _all_finite(meas.tolist()) and math.isfinite(stamp)):
             raise SimulationError(f"sample at stamp {stamp!r}: non-finite value")
         th_meas: Array | None = None
         if theta_measured is not None:
             th_meas = np.asarray(theta_measured, dtype=float).reshape(2)
-            if not np.all(np.isfinite(th_meas)):
+            if not _all_finite(th_meas.tolist()):
                 th_meas = None
         anchored = False
         last = self._last_stamp
@@ -241,15 +246,17 @@ class Predictor:
             self._set_theta(th_meas)  # positions appeared: anchor the angles to them
             self._theta_known = True
             anchored = True
+        # ``predicted`` is a new array below (``* output_gain``): no copy of the state's
         if isinstance(self.model, HybridModel):
             if self._state is None:
                 raise SimulationError("predictor: no model state after anchoring")
-            predicted = self._state.omega.copy()
+            predicted = self._state.omega
             gear = self._state.gear
+            position = self._state.theta.copy()
         else:
-            predicted = self._omega.copy()
+            predicted = self._omega
             gear = 0
-        position = self.theta
+            position = self._theta.copy()
         if anchored:
             self._history.clear()
         if self.output_delay > 0.0:
@@ -273,6 +280,12 @@ class Predictor:
         return Prediction(stamp=stamp, predicted=predicted, residual=residual, gear=gear,
                           anchored=anchored, predicted_position=position,
                           position_residual=pos_res)
+
+
+def _all_finite(values: list[float]) -> bool:
+    """Whether every value of a short list of floats is finite (cheaper than numpy for a
+    handful of values)."""
+    return all(map(math.isfinite, values))
 
 
 class ResidualBlocks:

@@ -30,25 +30,14 @@ from dvt_model.contract import (
     COMMAND_QOS as _COMMAND_QOS_SPEC,
 )
 from dvt_model.contract import (
-    CURRENT_NAMES,
-    CURRENTS,
-    DIAGNOSTICS,
-    JOINT_STATES,
-    MODEL_JOINT_STATES,
-    MODEL_RESIDUAL,
-    SPEED_NAMES,
-    QosSpec,
-)
-from dvt_model.contract import (
     LATCHED_QOS as _LATCHED_QOS_SPEC,
 )
 from dvt_model.contract import (
     SENSOR_QOS as _SENSOR_QOS_SPEC,
 )
+from dvt_model.contract import QosSpec
 
-__all__ = ["COMMAND_QOS", "CURRENTS", "CURRENT_NAMES", "DIAGNOSTICS", "JOINT_STATES",
-           "LATCHED_QOS", "MODEL_JOINT_STATES", "MODEL_RESIDUAL", "SENSOR_QOS", "SPEED_NAMES",
-           "qos"]
+__all__ = ["COMMAND_QOS", "LATCHED_QOS", "SENSOR_QOS", "qos"]
 
 
 def qos(spec: QosSpec) -> QoSProfile:

@@ -112,7 +112,6 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +124,7 @@ from dvt_model import friction
 from dvt_model.brake import capacity_step
 from dvt_model.errors import ModelError
 from dvt_model.load import JointLoad, load_joint_load, parse_joint_load
+from dvt_model.presets import bundled_names, read_yaml_setting
 
 __all__ = [
     "BACKLASH_LOCATIONS",
@@ -552,8 +552,7 @@ def _plain(obj: Any) -> Any:
 
 def available_presets() -> list[str]:
     """Names of the bundled hidden-effect presets (``config/<name>.yaml``)."""
-    root = resources.files("dvt_driver.plant") / _PRESET_DIR
-    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
+    return bundled_names("dvt_driver.plant", _PRESET_DIR)
 
 
 def load_hidden(name_or_path: str | Path) -> HiddenEffects:
@@ -562,25 +561,9 @@ def load_hidden(name_or_path: str | Path) -> HiddenEffects:
     Raises:
         HiddenEffectsError: unknown preset, unreadable file, invalid YAML or content.
     """
-    if isinstance(name_or_path, str) and name_or_path in available_presets():
-        source = f"{name_or_path}.yaml"
-        text = (resources.files("dvt_driver.plant") / _PRESET_DIR / source).read_text(
-            encoding="utf-8")
-    else:
-        path = Path(name_or_path)
-        if not (path.suffix in (".yaml", ".yml") or path.exists()):
-            raise HiddenEffectsError(
-                f"unknown hidden-effects preset {str(name_or_path)!r}: expected one of "
-                f"{available_presets()} or a path to a .yaml file")
-        source = str(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise HiddenEffectsError(f"{source}: cannot read hidden-effects file: {exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise HiddenEffectsError(f"{source}: not valid YAML: {exc}") from exc
+    data, source = read_yaml_setting(name_or_path, what="hidden-effects preset",
+                                     error=HiddenEffectsError, package="dvt_driver.plant",
+                                     directory=_PRESET_DIR)
     return parse_hidden(data, source=source)
 
 

@@ -1,11 +1,397 @@
-"""``dvt-bench loop``: the loop benchmark's entry point (:func:`dvt_driver.run.bench.loop_main`;
-the benchmark itself is in :mod:`dvt_driver.run.bench`)."""
+"""``dvt-bench loop``: the self-closing loop on the simulated plant (``docs/loop.md``).
+
+Without ``--with-identifier``: the change-detection benchmark of :func:`dvt_driver.run.bench.
+loop_main` (plant -> driver -> model node with its detector; a change by SIGHUP).
+
+With ``--with-identifier``: the whole loop as ``dvt-launch sim --supervise`` runs it
+(:func:`episode_launch_args`): the ``watch`` experiment (continuous neutral PRBS + multisine),
+the model node with the plant's own parameters as its prior, a change injected at plant time
+``--change-at`` (``--change`` preset, default ``friction_step``), the identifier's supervisor
+(short windows, :data:`LIVE_SUPERVISOR`) and the ring recorder; the run ends when an episode
+whose alarm follows the change is reported (or at ``--timeout``). The figures come from the
+ring's recording, the plant's ``truth.yaml`` and the episode report (:func:`analyse_episode`)::
+
+    dvt-bench loop --with-identifier [--rate 250] [--change-at 50] [--change friction_step]
+                   [--learn-s 10] [--seed 0] [--timeout 420] [--keep DIR] [--json]
+
+JSON: ``detection_delay_s`` (first alarm after the change: detection stamp - true change time),
+``change_time_error_s``, ``restored_s`` (true change -> the first of :data:`RESTORED_BINS`
+consecutive 1-s bins after the push whose residual RMS is within :data:`RESTORED_FACTOR` x
+the clean level on both outputs), ``push_after_change_s``, ``outcome``, ``pushed``,
+``rolled_back``, ``false_alarms`` / ``clean_tested_s`` / ``false_alarms_per_hour`` (+ upper
+95 % Poisson bound: alarms before the change while the detector tested the clean plant),
+``model_latency_ms`` (``p50``, ``p99``, ``max``: the ring recorder's reception of the residual
+minus its reception of the sample with the same stamp, detector on), ``model_dropped``
+(samples without a residual), ``residual_rms_clean`` / ``_changed`` (median 1-s RMS before the
+change / in its first 15 s) / ``_restored`` (the pushed model's, push to verdict) [rad/s].
+"""
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import json
+import math
+import os
+import re
+import signal
+import subprocess
 import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
-from dvt_driver.run.bench import loop_main as main
+import numpy as np
+import yaml
+
+from dvt_model.contract import JOINT_STATES, MODEL_CHANGE, MODEL_RESIDUAL, SPEED_NAMES
+
+BIN = Path(sys.executable).parent
+
+LIVE_SUPERVISOR: dict[str, float | int] = {
+    "min_post_change_s": 30.0, "settle_s": 1.0, "validation_s": 5.0, "watch_s": 15.0,
+    "watch_settle_s": 1.0, "baseline_s": 15.0, "push_timeout_s": 40.0, "fit_timeout_s": 180.0}
+"""Supervisor settings of the live demo, test and bench [s]: 30 s of post-change data (24 s
+to fit, the newest 5 s held out), a 15-s watch against the 15 s before the push; a loaded
+model node answers its parameter services late (push timeout 40 s)."""
+DETECTOR_SETTLE_S = 5.0
+"""The model node's ``detector.settle_s`` in the live runs [s]."""
+RESTORED_FACTOR = 1.5
+"""The residual is back at the noise level when its 1-s RMS is within this factor of the
+clean level (median 1-s RMS before the change) on both outputs."""
+RESTORED_BINS = 3
+"""... for this many consecutive 1-s bins."""
+
+
+def episode_launch_args(logdir: Path, rate: float = 250.0, change_at: float = 50.0,
+                        change: str = "friction_step", duration: float = 240.0,
+                        learn_s: float = 10.0, seed: int = 0, params: str = "physical"
+                        ) -> list[str]:
+    """``dvt-launch`` arguments (after the program) of one live-loop episode run.
+
+    ``rate`` [Hz] the controller rate; ``change_at`` [s of plant time] when the ``change``
+    preset (or hidden-effects YAML) is applied; ``duration`` [s] of the ``watch`` experiment;
+    ``learn_s`` [s] the detector's reference window; the model node's prior is ``params``, the
+    plant's own set. The ring records the samples and the residual (the refit's data and the
+    figure's); the refit is decimated to about 100 Hz.
+    """
+    args = ["sim", "--params", params, "--hidden", "none", "--seed", str(seed),
+            "--rate", f"{rate:g}", "--experiment", "watch", "--experiment-seed", str(seed),
+            "--experiment-set", f"duration={duration:g}",
+            "--change-at", f"{change_at:g}:{change}", "--supervise",
+            "--ring-minutes", f"{max(5.0, (duration + 60.0) / 60.0):g}",
+            "--ring-segment-seconds", "5",
+            "--record-topics", JOINT_STATES, "/dvt/currents", MODEL_RESIDUAL,
+            "--record-param", "snapshot_margin_s:=5.0",
+            "--model-param", f"detector.learn_s:={float(learn_s)!r}",
+            "--model-param", f"detector.settle_s:={DETECTOR_SETTLE_S!r}",
+            "--log-dir", str(logdir)]
+    for k, v in LIVE_SUPERVISOR.items():
+        args += ["--identify-param", f"supervisor.{k}:={v!r}"]
+    args += ["--identify-param", f"supervisor.fit_decimate:={max(1, round(rate / 100.0))}"]
+    return args
+
+
+def true_change(logdir: Path) -> float | None:
+    """Host time [s] at which the plant applied its first change (``truth.yaml``), if any."""
+    path = logdir / "truth.yaml"
+    if not path.exists():
+        return None
+    doc = yaml.safe_load(path.read_text()) or {}
+    applied = doc.get("changes_applied") or []
+    return float(applied[0]["unix_s"]) if applied else None
+
+
+def episodes(logdir: Path) -> list[dict[str, Any]]:
+    """The episode reports the identifier wrote under ``<logdir>/identify/episodes``."""
+    from dvt_driver.run.launch import IDENTIFY_DIR, episode_reports
+
+    out = []
+    for p in episode_reports(logdir / IDENTIFY_DIR):
+        with contextlib.suppress(OSError, ValueError):
+            out.append(json.loads(p.read_text()))
+    return out
+
+
+def change_episode(logdir: Path, tolerance_s: float = 2.0) -> dict[str, Any] | None:
+    """The first finished episode with an alarm at most ``tolerance_s`` [s] before the true
+    change or later (the one that handled the injected change), if any."""
+    change = true_change(logdir)
+    if change is None:
+        return None
+    for rec in episodes(logdir):
+        if any(float(a.get("stamp_s", -math.inf)) >= change - tolerance_s
+               for a in rec.get("alarms") or []):
+            return rec
+    return None
+
+
+def run_episode(logdir: Path, launch_args: Sequence[str], timeout: float,
+                env: dict[str, str] | None = None, log: Any = None) -> int:
+    """Run ``dvt-launch`` with ``launch_args`` until :func:`change_episode` finds the episode
+    of the injected change (then SIGINT: the launcher stops everything in order), the launcher
+    ends, or ``timeout`` [s] (SIGINT, then SIGKILL of its process group). Returns the
+    launcher's exit status (130 when stopped here)."""
+    logdir.mkdir(parents=True, exist_ok=True)
+    out = (logdir / "launch.log").open("wb")
+    proc = subprocess.Popen([str(BIN / "dvt-launch"), *launch_args], stdout=out,
+                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    deadline = time.monotonic() + timeout
+    try:
+        while proc.poll() is None:
+            if change_episode(logdir) is not None or time.monotonic() > deadline:
+                os.killpg(proc.pid, signal.SIGINT)
+                try:
+                    proc.wait(timeout=90.0)  # the launcher's own bounded stop of its children
+                except subprocess.TimeoutExpired:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait(timeout=10.0)
+                break
+            time.sleep(0.5)
+    finally:
+        if proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10.0)
+        out.close()
+    if log is not None:
+        print((logdir / "launch.log").read_text(errors="replace")[-3000:], file=log)
+    return int(proc.returncode)
+
+
+@dataclass
+class EpisodeRun:
+    """What a live episode run recorded (:func:`analyse_episode`); times are host time [s].
+
+    ``bins``: start of each 1-s bin; ``rms``: (N, 2) live residual RMS per bin [rad/s] (NaN
+    without samples); ``counts``: residual samples per bin; ``alarms``: the change alarms (the
+    model node's JSON); ``change``: the true change time; ``episode``: its report.
+    """
+
+    bins: np.ndarray
+    rms: np.ndarray
+    counts: np.ndarray
+    alarms: list[dict[str, Any]]
+    change: float | None
+    episode: dict[str, Any] | None
+    latency_ms: np.ndarray
+    dropped: int
+    rearmed: float | None
+    figures: dict[str, Any] = field(default_factory=dict)
+
+
+def _read_ring(ring: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, int],
+                                    list[dict[str, Any]]]:
+    """Residual stamps [s] and values, its reception times by stamp, the samples' reception
+    times by stamp [ns], and the alarms, from every ring segment."""
+    from rosbags.rosbag2 import Reader
+
+    from dvt_model.recording.cdr import parse_joint_state, typestore
+    from dvt_model.recording.ring import header_stamp_ns, segment_paths
+
+    ts = typestore()
+    stamps: list[int] = []
+    values: list[tuple[float, ...]] = []
+    res_at: dict[int, int] = {}
+    js_at: dict[int, int] = {}
+    alarms: list[dict[str, Any]] = []
+    for seg in segment_paths(ring):
+        try:
+            with Reader(seg) as reader:
+                conns = [c for c in reader.connections
+                         if c.topic in (JOINT_STATES, MODEL_RESIDUAL, MODEL_CHANGE)]
+                for conn, log_time, raw in reader.messages(connections=conns):
+                    if conn.topic == MODEL_CHANGE:
+                        msg: Any = ts.deserialize_cdr(raw, conn.msgtype)
+                        with contextlib.suppress(ValueError, KeyError):
+                            alarms.append(json.loads(msg.data))
+                        continue
+                    stamp = header_stamp_ns(raw)
+                    if stamp is None:
+                        continue
+                    if conn.topic == JOINT_STATES:
+                        js_at[stamp] = int(log_time)
+                    else:
+                        fields_ = parse_joint_state(raw)
+                        vel = dict(zip(fields_.names, fields_.velocity, strict=False))
+                        stamps.append(stamp)
+                        values.append(tuple(float(vel.get(n, math.nan)) for n in SPEED_NAMES))
+                        res_at[stamp] = int(log_time)
+        except Exception:  # a segment cut by a kill: the others still count
+            continue
+    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    st = np.asarray(stamps, dtype=np.int64)[order]
+    val = np.asarray(values, dtype=float).reshape(-1, len(SPEED_NAMES))[order]
+    latency = np.asarray([res_at[s] - js_at[s] for s in res_at if s in js_at], dtype=float)
+    return st * 1e-9, val, latency * 1e-6, {s: 1 for s in js_at if s not in res_at}, alarms
+
+
+def _rearm_time(logdir: Path) -> float | None:
+    """Host time [s] of the model node's first parameter change (the launcher's re-arm)."""
+    path = logdir / "model.log"
+    if not path.exists():
+        return None
+    for line in path.read_text(errors="replace").splitlines():
+        m = re.search(r"\[(\d+\.\d+)\] \[[^]]*\]: model changed", line)
+        if m:
+            return float(m.group(1))
+    return None
+
+
+def analyse_episode(logdir: Path, learn_s: float = 10.0) -> EpisodeRun:
+    """Figures of a live episode run in ``logdir`` (see the module docstring)."""
+    from dvt_driver.run.bench import _chi2_upper
+
+    st, val, latency, dropped, alarms = _read_ring(logdir / "ring")
+    change = true_change(logdir)
+    rec = change_episode(logdir)
+    if st.size == 0:
+        raise RuntimeError(f"{logdir / 'ring'}: no residual recorded")
+    lo = math.floor(st[0])
+    idx = (np.floor(st) - lo).astype(np.int64)
+    n = int(idx[-1]) + 1
+    counts = np.bincount(idx, minlength=n).astype(float)
+    ok = np.isfinite(val).all(axis=1)
+    rms = np.full((n, val.shape[1]), np.nan)
+    for j in range(val.shape[1]):
+        ss = np.bincount(idx[ok], weights=val[ok, j] ** 2, minlength=n)
+        cnt = np.bincount(idx[ok], minlength=n).astype(float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms[:, j] = np.sqrt(ss / cnt)
+    bins = lo + np.arange(n, dtype=float)
+    rearmed = _rearm_time(logdir)
+    run = EpisodeRun(bins, rms, counts, alarms, change, rec, latency, len(dropped), rearmed)
+    f: dict[str, Any] = {"change_unix_s": change, "episode": None}
+    tested_from = (rearmed if rearmed is not None else st[0]) + DETECTOR_SETTLE_S + learn_s
+    if change is not None:
+        pre = (bins >= max(tested_from - learn_s, change - 30.0)) & (bins + 1 <= change)
+        clean = np.nanmedian(rms[pre], axis=0) if pre.any() else np.full(2, np.nan)
+        f["residual_rms_clean"] = dict(zip(SPEED_NAMES, np.round(clean, 4).tolist(),
+                                           strict=True))
+        after = [a for a in alarms if float(a["stamp_s"]) >= change]
+        before = [a for a in alarms if float(a["stamp_s"]) < change]
+        first = min(after, key=lambda a: float(a["stamp_s"])) if after else None
+        f["detection_delay_s"] = round(float(first["stamp_s"]) - change, 3) if first else None
+        f["change_time_error_s"] = round(float(first["change_s"]) - change, 3) if first else None
+        f["alarm_output"] = first.get("name") if first else None
+        clean_s = max(0.0, change - tested_from)
+        f["false_alarms"] = len([a for a in before if float(a["stamp_s"]) >= tested_from])
+        f["false_alarms_before_rearm"] = len(before) - f["false_alarms"]
+        f["clean_tested_s"] = round(clean_s, 1)
+        hours = clean_s / 3600.0
+        f["false_alarms_per_hour"] = round(f["false_alarms"] / hours, 1) if hours else None
+        f["false_alarms_per_hour_upper95"] = (round(_chi2_upper(f["false_alarms"]) / hours, 1)
+                                              if hours else None)
+        post = (bins >= change + 1.0) & (bins < change + 15.0)
+        f["residual_rms_changed"] = dict(zip(SPEED_NAMES, np.round(
+            np.nanmedian(rms[post], axis=0), 4).tolist(), strict=True)) if post.any() else None
+        f["restored_s"] = None
+        if rec is not None:
+            f["episode"] = rec.get("episode")
+            f["outcome"] = rec.get("outcome")
+            f["pushed"] = rec.get("pushed")
+            f["rolled_back"] = rec.get("rolled_back")
+            f["timings"] = rec.get("timings")
+            f["accepted"] = (rec.get("refit") or {}).get("accepted")
+            push = rec.get("push_s")
+            f["push_after_change_s"] = round(float(push) - change, 3) if push else None
+            verdict = max((float(s_["t"]) for s_ in rec.get("steps") or []
+                           if s_.get("state") == "idle"), default=math.inf)
+            if push and rec.get("pushed"):
+                # the new model's residual: after the push, until the verdict (a rollback
+                # restores the old model; after the verdict the run is stopped)
+                done = (bins >= push + 1.0) & (bins + 1 <= verdict) & np.isfinite(rms).all(axis=1)
+                f["residual_rms_restored"] = dict(zip(SPEED_NAMES, np.round(
+                    np.nanmedian(rms[done], axis=0), 4).tolist(), strict=True)) \
+                    if done.any() else None
+            if push and rec.get("pushed") and not rec.get("rolled_back"):
+                good = (rms <= RESTORED_FACTOR * clean).all(axis=1) & (bins >= push)
+                for k in range(good.size - RESTORED_BINS + 1):
+                    if good[k:k + RESTORED_BINS].all():
+                        f["restored_s"] = round(float(bins[k]) - change, 3)
+                        break
+    lat = latency
+    f["model_latency_ms"] = {
+        "p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
+        "p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
+        "max": round(float(lat.max()), 3) if lat.size else None}
+    f["model_samples_timed"] = int(lat.size)
+    f["model_dropped"] = run.dropped
+    f["restored_factor"] = RESTORED_FACTOR
+    run.figures = f
+    return run
+
+
+def run_with_identifier(rate: float = 250.0, change_at: float = 50.0,
+                        change: str = "friction_step", learn_s: float = 10.0, seed: int = 0,
+                        timeout: float = 420.0, keep: Path | None = None,
+                        log: Any = None) -> dict[str, Any]:
+    """The loop bench with the identifier in the loop; returns the figures (module doc)."""
+    import shutil
+
+    work = Path(tempfile.mkdtemp(prefix="dvt-bench-loop-id-"))
+    env = dict(os.environ)
+    env.setdefault("ROS_DOMAIN_ID", str(201 + os.getpid() % 30))
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    duration = max(120.0, timeout - 30.0)
+    args = episode_launch_args(work / "run", rate, change_at, change, duration, learn_s, seed)
+    t0 = time.monotonic()
+    rc = run_episode(work / "run", args, timeout, env=env, log=log)
+    res = analyse_episode(work / "run", learn_s).figures
+    res.update({"launch_status": rc, "wall_s": round(time.monotonic() - t0, 1),
+                "rate_hz": rate, "change": change, "change_at_plant_s": change_at,
+                "learn_s": learn_s, "supervisor": LIVE_SUPERVISOR,
+                "load_average_1min": round(os.getloadavg()[0], 2)})
+    if keep is not None:
+        shutil.copytree(work, keep)
+    shutil.rmtree(work, ignore_errors=True)
+    return res
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``dvt-bench loop`` (argv without the ``loop`` word); returns the exit status."""
+    from dvt_driver.run.bench import loop_main
+
+    args_in = list(sys.argv[1:] if argv is None else argv)
+    if "--with-identifier" not in args_in:
+        return loop_main(args_in)
+    p = argparse.ArgumentParser(prog="dvt-bench loop --with-identifier",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--with-identifier", action="store_true", required=True)
+    p.add_argument("--rate", type=float, default=250.0,
+                   help="controller rate [Hz] (250: the live chain fits 2 shared cores)")
+    p.add_argument("--change-at", type=float, default=50.0,
+                   help="plant time of the change [s] (50)")
+    p.add_argument("--change", default="friction_step", help="preset or YAML of the change")
+    p.add_argument("--learn-s", type=float, default=10.0,
+                   help="the detector's reference window [s] (10)")
+    p.add_argument("--seed", type=int, default=0, help="plant and experiment seed (0)")
+    p.add_argument("--timeout", type=float, default=420.0, help="longest run [s] (420)")
+    p.add_argument("--keep", default=None, help="copy the run's directory here (new)")
+    p.add_argument("--json", action="store_true", help="print JSON only")
+    a = p.parse_args(args_in)
+    for name in ("rate", "change_at", "learn_s", "timeout"):
+        if not getattr(a, name) > 0:
+            p.error(f"--{name.replace('_', '-')}: expected > 0, got {getattr(a, name)}")
+    if a.keep is not None and Path(a.keep).exists():
+        p.error(f"--keep: {a.keep} already exists")
+    try:
+        res = run_with_identifier(a.rate, a.change_at, a.change, a.learn_s, a.seed, a.timeout,
+                                  Path(a.keep) if a.keep else None,
+                                  log=None if a.json else sys.stderr)
+    except (OSError, RuntimeError) as exc:
+        print(f"dvt-bench loop: error: {exc}", file=sys.stderr)
+        return 1
+    if a.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:32s} {v}")
+    return 0
+
 
 __all__ = ["main"]
 

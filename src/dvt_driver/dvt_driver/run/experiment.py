@@ -56,6 +56,7 @@ from dvt_model.contract import (
     CMD_GEAR,
     CMD_MOTOR_CURRENT,
     CMD_SUN_SPEED,
+    DIAGNOSTICS,
     DRIVER_NODE,
     SAMPLE_TOPICS,
     SRV_DRIVER_STOP,
@@ -181,7 +182,7 @@ class Runner:
         self.diag_count = 0
         self._warned: set[str] = set()
         self.stats = RunStats()
-        self.node.create_subscription(DiagnosticArray, rosutil.DIAGNOSTICS, self._on_diag, 10)
+        self.node.create_subscription(DiagnosticArray, DIAGNOSTICS, self._on_diag, 10)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self._motor: Command | None = None  # last motor command while the motor is on

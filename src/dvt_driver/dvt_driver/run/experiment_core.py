@@ -40,6 +40,12 @@ Named experiments (:data:`EXPERIMENTS`, :func:`build`):
 ``ident_shifts``
     A shift-rich identification run: neutral PRBS and multisine, then twelve band engagements
     against slipping rings (each gear from four sun speeds), for band-engagement effects.
+``watch``
+    Continuous excitation for a given duration, for the live loop (``dvt-launch sim
+    --supervise``, ``docs/loop.md``): cycles of neutral PRBS and multisine (fresh random
+    signals every cycle), optionally each gear of ``gears`` with PRBS, repeated until
+    ``duration``; the plant can change at any time and the data after it still excite what the
+    refit needs.
 ``smoke``
     A 5 s version of ``ident`` (neutral PRBS, gear 1 with PRBS) for end-to-end tests.
 
@@ -629,6 +635,75 @@ def ident_shifts(seed: int = 0, neutral_prbs: float = 5.0, neutral_multisine: fl
                           "clock_s": clock, "order": order})
 
 
+def watch(seed: int = 0, duration: float = 180.0, neutral_prbs: float = 6.0,
+          neutral_multisine: float = 5.0, gears: Sequence[int] = (), shift: float = 0.8,
+          excite: float = 4.0, amplitude: float = 2.5, gear_amplitude: float = 1.5,
+          clock: float = 0.03, order: int = 8) -> Experiment:
+    """Continuous excitation for ``duration`` [s] (then a 1.5 s stop), for the live loop.
+
+    One cycle: neutral PRBS of +-``amplitude`` [A] (``neutral_prbs`` s, clock ``clock`` s),
+    a random-phase multisine (0.2-20 Hz, peak ``amplitude`` + 0.5 A, ``neutral_multisine`` s),
+    then for each gear of ``gears`` (default none: neutral only, the stationary residual the
+    change detector is designed for; a commanded shift changes the residual of an imperfect
+    model) a shift at 0 A (``shift`` s) and PRBS of +-``gear_amplitude`` [A] with the band held
+    (``excite`` s). Cycles repeat with fresh random signals (cycle ``k`` draws its PRBS and
+    multisine from streams of its own) until ``duration``; the last one is cut there. The
+    schedule is that of :func:`ident`'s opening (the two-degree-of-freedom system and its
+    friction reversals), so any window of it longer than a cycle can be refitted.
+
+    Raises:
+        ExperimentError: ``duration`` not in (0, 86400] s, a phase length not > 0, or a gear
+            not in 1..3.
+    """
+    if isinstance(duration, bool) or not isinstance(duration, int | float) \
+            or not (math.isfinite(duration) and 0 < duration <= 86400.0):
+        raise ExperimentError(f"watch: duration: expected 0 < S <= 86400 s, got {duration!r}")
+    for name, v in (("neutral_prbs", neutral_prbs), ("neutral_multisine", neutral_multisine),
+                    ("shift", shift), ("excite", excite), ("clock", clock)):
+        if isinstance(v, bool) or not isinstance(v, int | float) \
+                or not (math.isfinite(v) and v > 0):
+            raise ExperimentError(f"watch: {name}: expected a time > 0 s, got {v!r}")
+    for g in gears:
+        if g not in (1, 2, 3) or isinstance(g, bool):
+            raise ExperimentError(f"watch: gears: expected gears 1..3, got {g!r}")
+    s = _Schedule()
+    s.at(0.0, Gear(0))
+    end = float(duration)
+    plan: list[tuple[str, float, int]] = [("neutral-prbs", neutral_prbs, 0),
+                                          ("neutral-multisine", neutral_multisine, 0)]
+    for g in gears:
+        plan += [(f"gear{g}-shift", shift, int(g)), (f"gear{g}-prbs", excite, int(g))]
+    k = 0
+    while s.t < end - 1e-9:
+        for label, length, g in plan:
+            if s.t >= end - 1e-9:
+                break
+            t0, t1 = s.phase(label, min(length, end - s.t))
+            stream = 1000 * (k + 1)
+            if label == "neutral-prbs":
+                if gears and k > 0:
+                    s.at(t0, Gear(0))
+                _prbs(s, t0, t1, amplitude, 0.0, clock, order, seed, stream + 1)
+            elif label == "neutral-multisine":
+                _multisine(s, t0, t1, amplitude + 0.5, 0.0, 200.0, 5.0, 0.2, 20.0, seed,
+                           stream + 2)
+            elif label.endswith("-shift"):
+                s.at(t0, MotorCurrent(0.0))
+                s.at(t0, Gear(g))
+            else:
+                _prbs(s, t0, t1, gear_amplitude, 0.0, clock, order, seed, stream + 10 + g)
+        k += 1
+    _stop(s, 1.5)
+    return s.build("watch", f"continuous excitation for {duration:g} s: neutral PRBS + "
+                   f"multisine{' and gears ' + str(list(gears)) if gears else ''}, repeated",
+                   1000, seed,
+                   {"duration_s": float(duration), "neutral_prbs_s": neutral_prbs,
+                    "neutral_multisine_s": neutral_multisine, "gears": tuple(gears),
+                    "shift_s": shift, "excite_s": excite, "amplitude_A": amplitude,
+                    "gear_amplitude_A": gear_amplitude, "clock_s": clock, "order": order,
+                    "cycles": k})
+
+
 def smoke(seed: int = 0) -> Experiment:
     """A 5 s end-to-end check: neutral PRBS, gear 1 with PRBS, stop."""
     s = _Schedule()
@@ -650,6 +725,7 @@ EXPERIMENTS: dict[str, Callable[..., Experiment]] = {
     "gears_excitation": gears_excitation,
     "ident": ident,
     "ident_shifts": ident_shifts,
+    "watch": watch,
     "smoke": smoke,
 }
 """Experiment name -> builder ``f(seed=0, **settings) -> Experiment``."""

@@ -34,6 +34,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from dvt_driver.link.settings import DEFAULT_SETTINGS
 from dvt_model.contract import (
     BRAKE_NAMES,
     CMD_BRAKE_CURRENTS,
@@ -54,6 +55,10 @@ from dvt_model.contract import (
 FOXGLOVE_NODE = "dvt_foxglove"
 """Node name of the bridge."""
 
+ENGAGED_FRACTION = 0.8
+"""The default engaged threshold as a fraction of the driver's ``gear_engage_current``: a band
+is held at that current, so a threshold equal to it flickers with the current's noise."""
+
 STATE = "/dvt/foxglove/state"
 """Gear and band (brake) states: the driver's gear/shift/mode from ``/diagnostics``, each
 band engaged when its measured current exceeds ``band_engaged_current``."""
@@ -72,7 +77,7 @@ SETTINGS_DEFAULTS: dict[str, Any] = {
     "rate_hz": 100.0,
     "band_window_s": 2.0,
     "band_sigmas": 3.0,
-    "band_engaged_current": 0.5,
+    "band_engaged_current": round(ENGAGED_FRACTION * DEFAULT_SETTINGS["gear_engage_current"], 6),
     "state_period_s": 0.5,
     "mcap": "",
 }
@@ -84,7 +89,9 @@ SETTINGS_DOC: dict[str, str] = {
     "rate_hz": "forwarding rate of the 1 kHz streams [Hz], by sample stamp (0 < rate <= 10000)",
     "band_window_s": "window of the residual's noise band [s]",
     "band_sigmas": "half-width of the noise band in standard deviations",
-    "band_engaged_current": "a band (brake) counts as engaged above this current [A]",
+    "band_engaged_current": "a band (brake) counts as engaged above this current [A] (default "
+                            "0.8 x the driver's gear_engage_current: a held band's current "
+                            "noise must not flicker the flag)",
     "state_period_s": "the state channel is re-sent at least this often [s]",
     "mcap": "also write everything served to this MCAP file ('' = no)",
 }

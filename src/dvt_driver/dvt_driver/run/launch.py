@@ -10,6 +10,7 @@ Usage::
                    [--compression zstd|none] [--max-missing N] [--no-model] [--log-dir DIR]
                    [--ring-minutes M] [--ring-dir DIR] [--ring-segment-seconds S]
                    [--change-at T:SPEC ...] [--change-file PATH]
+                   [--supervise] [--identify-param NAME:=VALUE ...] [--episodes N]
                    [--foxglove] [--foxglove-port P] [--foxglove-host H] [--foxglove-param N:=V]
                    [--start-discovery-server [IP:]PORT] [--discovery-server HOST[:PORT] ...]
                    [--static-peers A[,B...]]
@@ -37,6 +38,19 @@ Usage::
    (``docs/loop.md``). When a normal recording runs beside it, the normal recorder's snapshot
    topics are remapped to ``/dvt/recorder/bag/snapshot[_result]`` so that only the ring answers;
 
+5c. ``dvt_identify_node`` with its supervisor if ``--supervise`` (the self-closing loop,
+   ``docs/loop.md``; implies ``--ring-minutes 10`` unless a ring is given, and needs the model
+   node): ``supervisor.enabled:=true``, ``output_dir:=<log dir>/identify`` (its episode reports
+   ``episodes/episode-N.json`` / ``.md`` go there) and the ``--identify-param NAME:=VALUE``
+   items (e.g. ``supervisor.min_post_change_s:=20``); ready when it subscribes to
+   ``/dvt/model/change`` and ``/dvt/model/residual``. With an experiment, once it moves the
+   machine (its first ``phase`` line; before the ring and the identifier start) the launcher
+   re-arms the model node's change detector (it sets the model node's ``params`` to the value
+   it has: every accepted parameter change makes the detector learn anew), so that the
+   reference residual is learned on the running machine and not at standstill (a reference
+   learned at rest alarms when the motion starts). Each new episode report is printed
+   (``episode N: OUTCOME ...``); ``--episodes N`` ends the run after the N-th;
+
 6. ``dvt-foxglove`` if ``--foxglove`` (the Foxglove WebSocket bridge, ``docs/foxglove.md``;
    ready when it prints ``READY ws://...``);
 
@@ -46,7 +60,11 @@ A changing plant (sim): the ``--hidden`` preset may carry a schedule (``wear``,
 the plant (it then applies the change in ``--change-file`` at once). The plant writes every
 change it applies with its times into ``truth.yaml`` (copied into the bag when recording).
 
-then the run ends with the experiment, or after ``--duration`` seconds, or on Ctrl-C. ``hw``
+The model node gets ``detector.sample_rate_hz`` = the controller rate (unless
+``--model-param`` sets it), so that its detector's 10-ms blocks hold 10 ms at any ``--rate``.
+
+then the run ends with the experiment, or after ``--duration`` seconds, or after ``--episodes``
+episode reports, or on Ctrl-C. ``hw``
 does the same against a real controller on ``--port`` (no plant, no truth).
 
 Shutdown, also on Ctrl-C (SIGINT) or SIGTERM at any point: the experiment is stopped first (it
@@ -71,7 +89,8 @@ output goes to ``--log-dir`` (default a new ``/tmp/dvt-launch-*``).
 
 Exit status: 0 success; 1 a process failed to start or died (or the bag does not read back);
 2 bad arguments; 4 the bag misses more samples than ``--max-missing``, or does not hold the whole
-experiment; 130 interrupted; otherwise the experiment's own non-zero status.
+experiment; 5 fewer than ``--episodes`` episode reports when the run ended; 130 interrupted;
+otherwise the experiment's own non-zero status.
 """
 
 from __future__ import annotations
@@ -80,6 +99,7 @@ import argparse
 import contextlib
 import ctypes
 import fnmatch
+import json
 import os
 import shlex
 import signal
@@ -104,9 +124,12 @@ from dvt_model.contract import (
     COMMAND_PATTERN,
     COMMAND_TOPICS,
     DEFAULT_RECORD_TOPICS,
+    IDENTIFY_NODE,
     JOINT_STATES,
     MODEL_CHANGE,
     MODEL_JOINT_STATES,
+    MODEL_NODE,
+    MODEL_RESIDUAL,
     MODEL_TOPICS,
     RECORDER_SNAPSHOT_REQUEST,
     RECORDER_SNAPSHOT_RESULT,
@@ -115,13 +138,25 @@ from dvt_model.contract import (
 
 BIN = Path(sys.executable).parent
 READY_TIMEOUT = {"plant": 30.0, "driver": 30.0, "model": 30.0, "recorder": 30.0,
-                 "ring": 30.0, "experiment": 30.0, "foxglove": 30.0, "discovery": 10.0}
+                 "ring": 30.0, "experiment": 30.0, "foxglove": 30.0, "discovery": 10.0,
+                 "identify": 60.0}
 """Longest wait for each child to become ready [s]."""
 STOP_TIMEOUT = {"experiment": 10.0, "recorder": 30.0, "ring": 30.0, "model": 10.0,
-                "driver": 10.0, "plant": 10.0, "foxglove": 10.0, "discovery": 5.0}
+                "driver": 10.0, "plant": 10.0, "foxglove": 10.0, "discovery": 5.0,
+                "identify": 15.0}
+"""Longest wait for each child to exit after SIGINT before SIGKILL [s]."""
 RING_NODE = "dvt_recorder_ring"
 """Node name of the rolling recorder ``dvt-launch --ring-minutes`` starts."""
-"""Longest wait for each child to exit after SIGINT before SIGKILL [s]."""
+SUPERVISE_RING_MINUTES = 10.0
+"""Ring length ``--supervise`` implies without ``--ring-minutes`` [min]: the supervisor's
+default wait (60 s of post-change data) plus a refit, with margin (``docs/loop.md`` §4)."""
+REARM_TIMEOUT = 30.0
+"""Longest wait for the experiment's first phase and for the model node's answer when the
+launcher re-arms the change detector [s] (a loaded model node answers its parameter services
+after its queued samples)."""
+IDENTIFY_DIR = "identify"
+"""Sub-directory of the log directory that ``--supervise`` gives the identifier as
+``output_dir`` (episode reports in ``<log dir>/identify/episodes``)."""
 RECORDED_DVT_TOPICS = (*SAMPLE_TOPICS, *MODEL_TOPICS)
 """The high-rate streams a recording must hold (checked after the run)."""
 _PR_SET_PDEATHSIG = 1
@@ -277,7 +312,7 @@ class Monitor:
         self.node = rclpy.create_node("dvt_launch", context=self.ctx)
         self.counts: dict[str, int] = {}
         self.subs: list[Any] = []
-        for topic in (rosutil.JOINT_STATES, rosutil.MODEL_JOINT_STATES):
+        for topic in (JOINT_STATES, MODEL_JOINT_STATES):
             self.counts[topic] = 0
             self.subs.append(self.node.create_subscription(
                 JointState, topic, self._counter(topic), rosutil.SENSOR_QOS))
@@ -314,6 +349,42 @@ class Monitor:
             infos = self.node.get_publishers_info_by_topic(topic)
         return any(i.node_name == node_name for i in infos)
 
+    def rearm_detector(self, model_node: str, timeout: float) -> str:
+        """Make the model node's change detector learn anew: set its ``params`` to the value it
+        has (every accepted parameter change resets the detector and re-anchors the model).
+
+        Returns the value set. Raises :class:`LaunchError` naming the node, the step and
+        ``timeout`` [s] when it does not answer or refuses.
+        """
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+
+        with self._lock:
+            client = AsyncParameterClient(self.node, model_node)
+        deadline = time.monotonic() + timeout
+        if not client.wait_for_services(timeout_sec=min(timeout, 10.0)):
+            raise LaunchError(f"model node {model_node!r} has no parameter services within "
+                              f"{min(timeout, 10.0):g} s")
+
+        def wait(future: Any, what: str) -> Any:
+            while not future.done():
+                if time.monotonic() > deadline:
+                    raise LaunchError(f"model node {model_node!r} did not answer {what} "
+                                      f"within {timeout:g} s")
+                time.sleep(0.02)
+            return future.result()
+
+        with self._lock:
+            got = client.get_parameters(["params"])
+        value = str(wait(got, "get_parameters(params)").values[0].string_value)
+        with self._lock:
+            put = client.set_parameters([Parameter("params", Parameter.Type.STRING, value)])
+        result = wait(put, f"set_parameters(params:={value})").results[0]
+        if not result.successful:
+            raise LaunchError(f"model node {model_node!r} refused params:={value!r}: "
+                              f"{result.reason}")
+        return value
+
     def quiet(self) -> None:
         """Drop the sample subscriptions (readiness is established)."""
         with self._lock:
@@ -331,6 +402,85 @@ class Monitor:
             self.node.destroy_node()
         with contextlib.suppress(Exception):
             self.ctx.try_shutdown()
+
+
+DETECTOR_RATE = "detector.sample_rate_hz"
+"""The model node's detector parameter the launcher sets to the controller rate."""
+
+
+def episode_reports(directory: Path) -> list[Path]:
+    """The episode reports (``episode-N.json``, also ``episode-N-K.json`` of a later node)
+    under ``<directory>/episodes``, in episode order."""
+    def key(p: Path) -> tuple[int, ...]:
+        return tuple(int(x) for x in p.stem.split("-")[1:] if x.isdigit())
+
+    base = directory / "episodes"
+    return sorted(base.glob("episode-*.json"), key=key) if base.is_dir() else []
+
+
+def episode_line(record: dict[str, Any]) -> str:
+    """One line about an episode report (outcome, change and detection times [s], push)."""
+    def num(key: str) -> str:
+        v = record.get(key)
+        return f"{v:.3f}" if isinstance(v, int | float) else "-"
+
+    live = record.get("live_ratio") or {}
+    return (f"episode {record.get('episode')}: {record.get('outcome')} ({record.get('reason')}); "
+            f"change at {num('change_s')} s, detected at {num('detected_s')} s on "
+            f"{', '.join(record.get('outputs') or []) or '?'}; pushed {record.get('pushed')} "
+            f"at {num('push_s')} s, rolled back {record.get('rolled_back')}"
+            + (f"; live RMS ratio {', '.join(f'{k} {v:.3g}' for k, v in live.items())}"
+               if live else ""))
+
+
+def _rearm(exp: Child, monitor: Monitor, kids: Children, say: Callable[[str], None]) -> None:
+    """Once the experiment moves the machine (its first ``phase`` line), make the model node's
+    change detector learn its reference anew (:meth:`Monitor.rearm_detector`): a reference
+    learned at standstill alarms as soon as the motion starts. Done before the ring and the
+    identifier start, so that it falls inside the detector's first reference window (settle +
+    learn after the model node's first sample); a failure is a warning (the loop still runs)."""
+    try:
+        kids.wait_until("the experiment's first phase", lambda: "phase " in exp.tail(20000)
+                        or not exp.alive(), REARM_TIMEOUT)
+        if not exp.alive():
+            return
+        value = monitor.rearm_detector(MODEL_NODE, REARM_TIMEOUT)
+        say(f"experiment moving: the model node's change detector re-armed (params:={value}; "
+            "it learns its reference on the running machine)")
+    except LaunchInterruptedError:
+        raise
+    except LaunchError as exc:
+        say(f"warning: the change detector was not re-armed: {exc}")
+
+
+class _Supervision:
+    """``--supervise`` while the run lasts: prints every new episode report and says when
+    ``--episodes`` are done."""
+
+    def __init__(self, args: argparse.Namespace, directory: Path,
+                 say: Callable[[str], None]) -> None:
+        self.args = args
+        self.directory = directory
+        self.say = say
+        self.seen: set[Path] = set()
+        self.count = 0
+
+    def poll(self) -> bool:
+        """One check; ``True`` when ``--episodes`` reports exist (the run should end)."""
+        for path in episode_reports(self.directory):
+            if path in self.seen:
+                continue
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue  # being written: read at the next poll
+            self.seen.add(path)
+            self.count += 1
+            self.say(f"{episode_line(record)} -> {path}")
+        if self.args.episodes is not None and self.count >= self.args.episodes:
+            self.say(f"{self.count} episode report(s): --episodes {self.args.episodes} done")
+            return True
+        return False
 
 
 def _param(text: str, option: str) -> list[str]:
@@ -405,6 +555,17 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
                         help="its ring directory (default <log dir>/ring; may exist)")
     common.add_argument("--ring-segment-seconds", type=float, default=10.0, metavar="S",
                         help="length of one ring segment [s] (default 10)")
+    common.add_argument("--supervise", action="store_true",
+                        help="also run dvt_identify_node with its supervisor (alarm -> refit "
+                             "-> push -> watch -> keep or roll back, docs/loop.md); implies "
+                             f"--ring-minutes {SUPERVISE_RING_MINUTES:g} unless given; episode "
+                             f"reports in <log dir>/{IDENTIFY_DIR}/episodes")
+    common.add_argument("--identify-param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="extra dvt_identify_node parameter, e.g. "
+                             "supervisor.min_post_change_s:=20 (repeatable; needs --supervise)")
+    common.add_argument("--episodes", type=int, default=None, metavar="N",
+                        help="end the run after N episode reports (needs --supervise; exit "
+                             "status 5 if fewer when the run ends otherwise)")
     common.add_argument("--start-discovery-server", default=None, metavar="[IP:]PORT",
                         help="start a Fast DDS discovery server (e.g. 0.0.0.0:11811) and use it "
                              "(docs/multihost.md)")
@@ -433,7 +594,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
         p.error(f"--rate: expected 0 < HZ <= 2000, got {args.rate}")
     if args.duration is not None and not args.duration > 0:
         p.error(f"--duration: expected a number > 0 s, got {args.duration}")
-    for opt in ("driver_param", "model_param", "record_param", "foxglove_param"):
+    for opt in ("driver_param", "model_param", "record_param", "foxglove_param",
+                "identify_param"):
         for it in getattr(args, opt):
             try:
                 _param(it, "--" + opt.replace("_", "-"))
@@ -455,6 +617,15 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
         p.error("--foxglove-port/--foxglove-host/--foxglove-param need --foxglove")
     if args.foxglove_port is not None and not 0 <= args.foxglove_port <= 65535:
         p.error(f"--foxglove-port: expected 0..65535, got {args.foxglove_port}")
+    if not args.supervise and (args.identify_param or args.episodes is not None):
+        p.error("--identify-param/--episodes need --supervise")
+    if args.supervise and args.no_model:
+        p.error("--supervise needs the model node (its residual and change alarms); drop "
+                "--no-model")
+    if args.episodes is not None and args.episodes < 1:
+        p.error(f"--episodes: expected an integer >= 1, got {args.episodes}")
+    if args.supervise and args.ring_minutes is None:
+        args.ring_minutes = SUPERVISE_RING_MINUTES
     if args.ring_minutes is not None and not (0 < args.ring_minutes <= 24 * 60):
         p.error(f"--ring-minutes: expected 0 < M <= 1440, got {args.ring_minutes}")
     if args.ring_minutes is not None and not (
@@ -611,6 +782,7 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     record = Path(args.record).resolve() if args.record else None
     topics = list(args.record_topics or DEFAULT_RECORD_TOPICS)
     truth = logdir / "truth.yaml"
+    identify_dir = logdir / IDENTIFY_DIR
     status = 0
     monitor: Monitor | None = None
     started = time.time()
@@ -668,9 +840,11 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         # 3. model node
         if not args.no_model:
             # the model node's prior is the plant's parameter set unless --model-param names one
-            own_set = any(kv.split(":=", 1)[0].strip() == "params" for kv in args.model_param)
-            kids.start("model", [script("dvt_model_node"), "--ros-args",
-                                 *([] if own_set else ["-p", f"params:={args.params}"]),
+            given = {kv.split(":=", 1)[0].strip() for kv in args.model_param}
+            mine: list[str] = [] if "params" in given else ["-p", f"params:={args.params}"]
+            if DETECTOR_RATE not in given:  # 10-ms detector blocks at any controller rate
+                mine += ["-p", f"{DETECTOR_RATE}:={float(rate)!r}"]
+            kids.start("model", [script("dvt_model_node"), "--ros-args", *mine,
                                  *_ros_params(args.model_param, "--model-param")])
             kids.wait_until("the model node's /dvt/model/joint_states",
                             lambda: (monitor is not None
@@ -722,6 +896,8 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                                 monitor.subscribed("dvt_recorder", t) for t in needed),
                             READY_TIMEOUT["recorder"])
             say(f"recording to {record}")
+        if args.supervise and exp is not None:
+            _rearm(exp, monitor, kids, say)
         if ring:
             ring_dir = Path(args.ring_dir).resolve() if args.ring_dir else logdir / "ring"
             ring_topics = [*topics, *([] if MODEL_CHANGE in topics else [MODEL_CHANGE])]
@@ -742,6 +918,19 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                             READY_TIMEOUT["ring"])
             say(f"rolling recording of the last {args.ring_minutes:g} min in {ring_dir} "
                 f"(snapshots on {RECORDER_SNAPSHOT_REQUEST})")
+        if args.supervise:
+            given = {kv.split(":=", 1)[0].strip() for kv in args.identify_param}
+            own_id = [] if "output_dir" in given else ["-p", f"output_dir:={identify_dir}"]
+            kids.start("identify", [
+                script("dvt_identify_node"), "--ros-args", "-p", "supervisor.enabled:=true",
+                *own_id, *_ros_params(args.identify_param, "--identify-param")])
+            kids.wait_until(f"dvt_identify_node's subscriptions on {MODEL_CHANGE} and "
+                            f"{MODEL_RESIDUAL}",
+                            lambda: monitor is not None and all(
+                                monitor.subscribed(IDENTIFY_NODE, t)
+                                for t in (MODEL_CHANGE, MODEL_RESIDUAL)),
+                            READY_TIMEOUT["identify"])
+            say(f"identifier supervising the loop; episode reports in {identify_dir}/episodes")
         if args.foxglove:
             fox_args: list[str] = []
             if args.foxglove_port is not None:
@@ -757,6 +946,7 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         monitor.quiet()
         # run
         deadline = time.monotonic() + args.duration if args.duration else None
+        loop = _Supervision(args, identify_dir, say) if args.supervise else None
         if exp is not None:
             say(f"running experiment {args.experiment} (log {exp.log})")
             while exp.alive():
@@ -766,6 +956,8 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                     say(f"--duration {args.duration:g} s reached; stopping the experiment")
                     break
                 kids.check_alive()
+                if loop is not None and loop.poll():
+                    break
                 time.sleep(0.1)
             if not exp.alive():
                 exp_status = exp.proc.returncode
@@ -780,7 +972,14 @@ def launch(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
                 if stop:
                     raise LaunchInterruptedError("interrupted")
                 kids.check_alive()
+                if loop is not None and loop.poll():
+                    break
                 time.sleep(0.1)
+        if loop is not None and args.episodes is not None and loop.count < args.episodes \
+                and status == 0:
+            say(f"error: {loop.count} episode report(s) when the run ended, --episodes "
+                f"{args.episodes} asked for")
+            status = 5
     except LaunchInterruptedError as exc:
         say(f"{exc}; shutting down")
         status = 130

@@ -68,17 +68,23 @@ class ParamSpec:
 
 @dataclass(frozen=True)
 class SegmentView:
-    """What an effect may look at: sample time, inputs and measured outputs of one segment.
+    """What an effect may look at: sample time, inputs, measured outputs and angles of one
+    segment.
 
     Attributes:
         dt: sample time [s].
         u: inputs, shape (N, nu).
         y: measured outputs (= states), shape (N, ny).
+        angles: measured angles, shape (N, ny) (:attr:`dvt_identify.data.Segment.angles`:
+            column ``j`` the recorded position of the joint whose speed output ``j`` is, 0 for
+            another output), or ``None`` when the recording has none (member angles then
+            integrate the measured speed, :func:`dvt_identify.effects.position.angle_of`).
     """
 
     dt: float
     u: Array
     y: Array
+    angles: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -322,6 +328,18 @@ class Effect:
             outputs: the model's output (state) names, in order.
         """
         return None
+
+    def model_terms(self, p: Array, outputs: Sequence[str]) -> list[Term] | None:
+        """The model node's effect terms for parameters ``p``: an effect may need several
+        (``unlisted``: one ``library`` term per coefficient); default: :meth:`model_term` as a
+        list. ``None`` when the node cannot represent the effect (:meth:`why_no_term`).
+
+        Members are over ``outputs`` (the push reorders them to the node's speeds); a term's
+        ``input`` is named by the model's input name (the push maps it to the contract's
+        current name, :data:`dvt_model.contract.CURRENT_NAMES`).
+        """
+        term = self.model_term(p, outputs)
+        return None if term is None else [term]
 
     def why_no_term(self, outputs: Sequence[str]) -> str:
         """Why :meth:`model_term` gives ``None`` for these outputs."""

@@ -17,7 +17,9 @@ With an integrated angle a phase is relative to the first sample.
   :meth:`Unlisted.subset`); its label carries the formula in physical units.
 
 All are exogenous forces evaluated on the measured speeds and angles (like a periodic
-disturbance), so the simulation stays the compiled linear + dry-friction loop.
+disturbance), so the simulation stays the compiled linear + dry-friction loop. Model node:
+a ``gravity`` term and one ``library`` term per coefficient (:mod:`dvt_model.terms`), pushed only
+when the angle was the measured position (:mod:`dvt_identify.push`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from dvt_identify.effects.base import (
     ParamSpec,
     ScoringContext,
     SegmentView,
+    Term,
     numbers_option,
 )
 from dvt_identify.errors import DescriptionError
@@ -45,11 +48,15 @@ ANGLE_FROM_SPEED = "integrated measured speed (from 0 at the first sample)"
 
 
 def angle_of(seg: SegmentView, member: Array) -> tuple[Array, str]:
-    """The member angle ``c . theta`` over the segment, shape (N,), and its source.
+    """The member angle ``c . theta`` over the segment, shape (N,) [rad for a rad/s member],
+    and its source (:data:`ANGLE_FROM_POSITION` or :data:`ANGLE_FROM_SPEED`).
 
-    Uses ``seg.angles`` (measured angles of the outputs, shape (N, ny)) when the view carries
-    them, else the integral of the measured member speed ``c . y`` from 0."""
-    angles = getattr(seg, "angles", None)
+    Uses ``seg.angles`` (measured angles of the outputs, shape (N, ny): the recorded position
+    of each speed output's joint, 0 for another output) when the view carries them, else the
+    integral of the measured member speed ``c . y`` from 0. With angle states among the
+    outputs (a position description: states ``(angles, speeds)``), a member given on the speeds
+    gets the measured angle of the same joints (the angle states as recorded)."""
+    angles = seg.angles
     if isinstance(angles, np.ndarray) and angles.shape == seg.y.shape:
         return np.asarray(angles @ member, dtype=float), ANGLE_FROM_POSITION
     s = seg.y @ member
@@ -81,7 +88,13 @@ class GravityLoad(Effect):
     """
 
     name = "gravity_load"
-    no_term = "the model node has no gravity-load term"
+    no_term = ""
+
+    def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
+        """A ``gravity`` term: the same torque ``a cos(theta / N) + b sin(theta / N)`` on the
+        member (the push sends it only when the angle was the measured position)."""
+        return {"kind": "gravity", "member": self.member_list(), "a": float(p[0]),
+                "b": float(p[1]), "reduction": float(p[2])}
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -163,18 +176,23 @@ class LibTerm:
         trig: ``""``, ``"cos"`` or ``"sin"``.
         order: the angle order ``k`` (per member revolution) when ``trig`` is set.
         input: the input index of the product, or -1.
+        mesh: 0: ``theta`` is the member's angle; ``k``: stage ``k``'s mesh angle ``theta_sun -
+            theta_carrier_k`` (:class:`MeshStage`, ``order`` its sun teeth).
     """
 
     speed: str = ""
     trig: str = ""
     order: float = 0.0
     input: int = -1
+    mesh: int = 0
 
     def key(self, input_names: Sequence[str]) -> str:
         """A short parameter-name stem (``sgn_cos1``, ``u_motor_sgn``, ...)."""
         parts = {"sign": ["sgn"], "abs_sq": ["absq"], "cube": ["cube"], "": []}[self.speed]
         if self.trig:
             parts.append(f"{self.trig}{self.order:g}".replace(".", "p"))
+            if self.mesh:
+                parts.append(f"mesh{self.mesh}")
         if self.input >= 0:
             parts.append(f"u_{input_names[self.input]}")
         return "_".join(parts) or "const"
@@ -200,7 +218,8 @@ class LibTerm:
         f = {"sign": [f"sign(w_{member})"], "abs_sq": [f"|w_{member}|*w_{member}"],
              "cube": [f"w_{member}^3"], "": []}[self.speed]
         if self.trig:
-            f.append(f"{self.trig}({self.order:g}*th_{member})")
+            angle = f"mesh{self.mesh}" if self.mesh else member
+            f.append(f"{self.trig}({self.order:g}*th_{angle})")
         if self.input >= 0:
             f.append(f"i_{input_names[self.input]}")
         return "*".join(f) or "1"
@@ -214,20 +233,23 @@ class LibTerm:
         return force_unit + ("/" + "/".join(den) if den else "")
 
 
-def default_library(orders: Sequence[float], inputs: Sequence[int]) -> tuple[LibTerm, ...]:
+def default_library(orders: Sequence[float], inputs: Sequence[int],
+                    mesh: Sequence[tuple[int, float]] = ()) -> tuple[LibTerm, ...]:
     """The generic library on one member: ``sign(s)``, ``|s| s``, ``s^3``; ``cos/sin(k theta)``
     and ``sign(s) cos/sin(k theta)`` for each order; ``u_i sign(s)``, ``u_i cos/sin(k theta)``
-    for each listed input (products with the inputs)."""
+    for each listed input (products with the inputs). Each ``(stage, teeth)`` of ``mesh`` adds
+    the same angle terms on that stage's mesh angle at order ``teeth``."""
+    angles = [(float(k), 0) for k in orders] + [(float(z), int(st)) for st, z in mesh]
     out = [LibTerm("sign"), LibTerm("abs_sq"), LibTerm("cube")]
-    for k in orders:
+    for k, m in angles:
         for trig in ("cos", "sin"):
-            out.append(LibTerm("", trig, float(k)))
-            out.append(LibTerm("sign", trig, float(k)))
+            out.append(LibTerm("", trig, k, mesh=m))
+            out.append(LibTerm("sign", trig, k, mesh=m))
     for i in inputs:
         out.append(LibTerm("sign", "", 0.0, i))
-        for k in orders:
+        for k, m in angles:
             for trig in ("cos", "sin"):
-                out.append(LibTerm("", trig, float(k), i))
+                out.append(LibTerm("", trig, k, i, mesh=m))
     return tuple(out)
 
 
@@ -240,24 +262,130 @@ def mesh_orders(params_name: str = "physical") -> list[float]:
     return list(dict.fromkeys(teeth))
 
 
+MESH_SPEEDS = ("sun_shaft", "carrier3")
+"""Default states of the generalised speeds ``(omega_sun, omega_carrier3)`` of
+:mod:`dvt_model.kinematics` (option ``mesh_speeds``)."""
+
+
+@dataclass(frozen=True)
+class MeshStage:
+    """The sun/planet mesh of one planetary stage: it turns with ``Z_sun (theta_sun -
+    theta_carrier_k)`` (a tooth passes per ``2 pi / Z_sun`` of the sun relative to its carrier).
+
+    Attributes:
+        stage: stage number ``k`` (1 = the input stage).
+        teeth: the stage's sun tooth count ``Z_sun_k`` (the mesh order of the relative angle).
+        form: ``theta_sun - theta_carrier_k`` as ``(a, b)`` with ``a theta_sun + b
+            theta_carrier3`` (:func:`dvt_model.kinematics.kinematics` of the parameter set).
+    """
+
+    stage: int
+    teeth: float
+    form: tuple[float, float]
+
+    @property
+    def symbol(self) -> str:
+        """``mesh<k>``: the name of the stage's relative angle in formulas."""
+        return f"mesh{self.stage}"
+
+
+def mesh_stages(params_name: str = "physical") -> list[MeshStage]:
+    """The mesh of every stage of a parameter set (:mod:`dvt_model.params`), in stage order:
+    its sun teeth and the member form ``sun - carrier_k`` of :mod:`dvt_model.kinematics`.
+
+    Raises:
+        DescriptionError: no such parameter set.
+    """
+    from dvt_model.errors import ParameterError
+    from dvt_model.kinematics import kinematics
+    from dvt_model.params import load_parameters
+
+    try:
+        params = load_parameters(params_name)
+    except ParameterError as exc:
+        raise DescriptionError(f"mesh stages: parameter set {params_name!r}: {exc}") from exc
+    kin = kinematics(params)
+    sun = kin.forms["sun"]
+    out = []
+    for k, st in enumerate(params.stages, start=1):
+        carrier = kin.forms[f"carrier{k}"]
+        out.append(MeshStage(stage=k, teeth=float(st.sun),
+                             form=(float(sun[0] - carrier[0]), float(sun[1] - carrier[1]))))
+    return out
+
+
+def mesh_members(ctx: BuildContext) -> list[tuple[MeshStage, Array]]:
+    """Each stage's mesh (option ``params``, default ``physical``) with its relative-angle
+    form over the structure's states, shape (nx,) each: ``a`` at the state of ``omega_sun``,
+    ``b`` at that of ``omega_carrier3`` (option ``mesh_speeds``, default
+    :data:`MESH_SPEEDS`).
+
+    Raises:
+        DescriptionError: ``mesh_speeds`` is not two state names (naming the candidate).
+    """
+    what = f"candidate {ctx.name}@{ctx.where}"
+    raw = ctx.options.get("mesh_speeds", list(MESH_SPEEDS))
+    if not isinstance(raw, list | tuple) or len(raw) != 2:
+        raise DescriptionError(f"{what}: mesh_speeds: expected the two states of the sun and "
+                               f"carrier-3 speeds, got {raw!r}")
+    missing = [str(n) for n in raw if str(n) not in ctx.state_names]
+    if missing:
+        raise DescriptionError(f"{what}: mesh_speeds: {missing} not a state (states: "
+                               f"{', '.join(ctx.state_names)})")
+    i_sun, i_c3 = (ctx.state_names.index(str(n)) for n in raw)
+    out = []
+    for ms in mesh_stages(str(ctx.options.get("params", "physical"))):
+        c = np.zeros(len(ctx.state_names))
+        c[i_sun] += ms.form[0]
+        c[i_c3] += ms.form[1]
+        out.append((ms, c))
+    return out
+
+
 @dataclass
 class Unlisted(Effect):
     """A sum of library terms on one member (see the module docstring).
 
     Options (description entry): ``orders`` (angle orders per member revolution, default
     1, 2, 3), ``mesh_orders`` (true: add each stage's sun teeth from the parameter set
-    ``params``, default ``physical``), ``inputs`` (input names for the products, default the
-    first input), ``max_terms`` (the search's cap, default 3).
+    ``params``, default ``physical``), ``mesh_stages`` (true: add the angle terms of each
+    stage's mesh angle ``theta_sun - theta_carrier_k`` at its sun teeth, ``th_mesh<k>`` in the
+    formula; ``mesh_speeds`` names the states of the sun and carrier-3 speeds, see
+    :func:`mesh_members`), ``inputs`` (input names for the products, default the first
+    input), ``max_terms`` (the search's cap, default 3).
+
+    Attributes:
+        mesh_forms: stage ``k``'s mesh-angle form over the states at index ``k - 1``
+            (shape (nx,) each; empty without ``mesh_stages``).
     """
 
     name = "unlisted"
-    no_term = "the model node has no generic library term"
+    no_term = "every coefficient is 0"
+
+    def model_terms(self, p: Array, outputs: Sequence[str]) -> list[Term] | None:
+        """One ``library`` term per non-zero coefficient: ``k S(s) T(order theta) u`` on the
+        member, ``theta`` the member's angle or the term's mesh angle (field ``angle``), the
+        input named by the model's input name (the push maps it to the node's current);
+        ``None`` when every coefficient is 0."""
+        out: list[Term] = []
+        for t, k in zip(self.terms, p, strict=True):
+            if float(k) == 0.0:
+                continue
+            term: Term = {"kind": "library", "member": self.member_list(), "k": float(k),
+                          "speed": t.speed, "trig": t.trig,
+                          "order": float(t.order) if t.trig else 0.0,
+                          "input": self.input_names[t.input] if t.input >= 0 else ""}
+            if t.trig and t.mesh:
+                term["angle"] = [float(v) for v in self.mesh_form(t.mesh)]
+            out.append(term)
+        return out or None
     terms: tuple[LibTerm, ...] = ()
     input_names: tuple[str, ...] = ()
     member_name: str = ""
     units: tuple[str, str, str] = ("", "", "")
     library: bool = True
     angle_source: str = field(default="")
+    mesh_forms: tuple[tuple[float, ...], ...] = ()
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -271,11 +399,13 @@ class Unlisted(Effect):
         if not isinstance(raw_inputs, list):
             raise DescriptionError(f"{what}: inputs: expected a list of input names")
         inputs = [ctx.input_index(str(n)) for n in raw_inputs]
-        terms = default_library(orders, inputs)
+        stages = mesh_members(ctx) if ctx.options.get("mesh_stages") else []
+        terms = default_library(orders, inputs, [(ms.stage, ms.teeth) for ms, _ in stages])
         units = (ctx.force_unit, ctx.speed_unit, str(ctx.options.get("input_unit", "A")))
         eff = cls(where=ctx.where, member=ctx.member_vector(), options=dict(ctx.options),
                   terms=terms, input_names=ctx.input_names, member_name=ctx.where,
-                  units=units, library=True)
+                  units=units, library=True,
+                  mesh_forms=tuple(tuple(float(v) for v in c) for _, c in stages))
         return eff.with_terms(terms, np.zeros(len(terms)), library=True, suffix=ctx.suffix)
 
     def with_terms(self, terms: Sequence[LibTerm], values: Array, library: bool = False,
@@ -305,8 +435,27 @@ class Unlisted(Effect):
         """Every term's value on the segment, shape (N, n_terms)."""
         c = self.require_member()
         s = seg.y @ c
-        theta, _ = angle_of(seg, c)
-        return np.column_stack([t.evaluate(s, theta, seg.u) for t in self.terms])
+        thetas = {0: angle_of(seg, c)[0]}
+        for t in self.terms:
+            if t.mesh not in thetas:
+                thetas[t.mesh] = angle_of(seg, self.mesh_form(t.mesh))[0]
+        return np.column_stack([t.evaluate(s, thetas[t.mesh], seg.u) for t in self.terms])
+
+    def mesh_form(self, stage: int) -> Array:
+        """Stage ``stage``'s mesh-angle form over the states, shape (nx,).
+
+        Raises:
+            DescriptionError: the library was built without that stage (naming it).
+        """
+        if not 1 <= stage <= len(self.mesh_forms):
+            raise DescriptionError(f"{self.name}@{self.where}: mesh stage {stage}: built with "
+                                   f"{len(self.mesh_forms)} mesh stages (mesh_stages: true)")
+        return np.asarray(self.mesh_forms[stage - 1], dtype=float)
+
+    def mesh_angles(self) -> dict[str, str]:
+        """What each ``th_mesh<k>`` of the terms is (for the report)."""
+        return {f"th_mesh{k}": f"th_sun - th_carrier{k} (stage {k} sun/planet mesh)"
+                for k in sorted({t.mesh for t in self.terms if t.mesh})}
 
     def exogenous_force(self, p: Array, seg: SegmentView) -> Array | None:
         if not self.terms:

@@ -5,15 +5,25 @@ Every output effect acts on a *measured output* (``where`` names it; with a stru
 hidden states the outputs are a subset of the states, :meth:`BuildContext.output_index`). The
 sensor maps leave a residual signature a reader can check in ``scoring_evidence``:
 
-- sign-blind: the baseline error is concentrated where the simulated output changes sign
-  (a negative simulated value is read as a positive measured one), and the measured output
-  never goes below zero while the simulated one does; a lightly damped mode read through
-  ``|y|`` puts its energy at *twice* the mode frequency;
+- sign-blind: the measured output never goes below zero while the simulated one does, and the
+  baseline error sits where the simulated output is negative (a negative value read as a
+  positive one: ``error_share_where_simulated_negative`` near 1); a signal oscillating about
+  zero read through ``|y|`` puts its energy at *twice* its frequency, so the residual carries
+  a second harmonic of the fundamental (``second_harmonic_ratio``, :func:`harmonics`);
+  the share of the error in windows around the simulated output's sign changes
+  (``error_share_near_sign_changes`` against ``sample_share_near_sign_changes``,
+  :func:`sign_change_shares`) tells it from effects acting at reversals;
 - saturation: flat tops, the measured output sits at its extreme values for several samples
-  while the simulation goes beyond them;
+  while the simulation goes beyond them, and the baseline error is concentrated there
+  (``error_share_at_flat_tops`` against ``sample_share_at_flat_tops``);
 - quantisation: the measured values fall on a grid (its step is the most common non-zero
-  difference of consecutive samples), the residual is a sawtooth within half a step;
-- offset: a constant mean residual.
+  difference of consecutive samples), the residual is a sawtooth within half a step
+  (``residual_rms_over_step`` near ``1/sqrt(12) = 0.289`` when the grid is all that is left);
+- offset: a constant mean residual (``mean_residual_over_residual_std``).
+
+Every number is computed from the measured outputs and the baseline simulation handed to the
+scorer (:class:`ScoringContext`, all scored segments pooled) and lands in the report's
+evidence of the candidate under the same name.
 """
 
 from __future__ import annotations
@@ -24,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dvt_identify.effects.base import Array, BuildContext, Effect, ParamSpec, ScoringContext, Term
+from dvt_identify.resid import residual_spectrum
 
 
 @dataclass
@@ -129,6 +140,113 @@ FLAT_TOP_SHARE = 0.01
 """Smallest share of samples exactly at the measured extreme that reads as a flat top."""
 
 
+HARMONIC_BAND = 0.1
+"""Half-width of the bands around the fundamental and its second harmonic, relative to the
+fundamental frequency."""
+PEAK_PROMINENCE = 10.0
+"""Smallest prominence (density over the median within half an octave) of a spectral peak of
+the simulated output taken as the fundamental; below it the measured output's peak is used."""
+SIGN_CHANGE_WINDOW = 0.1
+"""Half-width of the window around each sign change of the simulated output, as a share of the
+median interval between consecutive sign changes (at least one sample)."""
+
+
+def _band_power(freq: Array, psd: Array, f: float, half: float) -> float:
+    """Power of a PSD within ``f +- half`` [unit^2] (rectangle rule; at least the nearest
+    bin)."""
+    if freq.size < 2:
+        return 0.0
+    df = float(freq[1] - freq[0])
+    m = np.abs(freq - f) <= max(half, 0.5 * df)
+    if not np.any(m):
+        m = np.abs(freq - f) == np.min(np.abs(freq - f))
+    return float(np.sum(psd[m]) * df)
+
+
+def harmonics(measured: Sequence[Array], simulated: Sequence[Array], dt: float
+              ) -> dict[str, object]:
+    """Second-harmonic signature of an output read through ``|y|``.
+
+    The fundamental ``f1`` is the most prominent peak of the simulated output's Welch spectrum
+    (:func:`dvt_identify.resid.residual_spectrum`: density over the median within half an
+    octave; a forced frequency or a lightly damped mode), or of the measured output's when
+    the simulated one has no peak of prominence ``PEAK_PROMINENCE`` (a baseline bent towards
+    ``|y|`` can lose the mode). Returned (numbers a reader can check against the residual
+    spectrum plot):
+
+    - ``fundamental_hz``: ``f1`` [Hz], and ``fundamental_from``: ``simulated`` or ``measured``;
+    - ``second_harmonic_ratio``: residual power within ``2 f1 +- HARMONIC_BAND f1`` over the
+      power of the fundamental within ``f1 +- HARMONIC_BAND f1`` (the larger of the simulated
+      and the measured output's; dimensionless). ``|sin|`` against ``sin`` gives
+      ``(4 / 3 pi)^2 = 0.18``; a linear misfit leaves no second harmonic of a sinusoid and
+      white noise only its share of the band (both near 0); an output that seldom crosses
+      zero while it oscillates (a mode riding on a one-signed speed) gives little either;
+    - ``residual_2f_over_f``: residual power at ``2 f1`` over residual power at ``f1`` (the
+      same bands).
+
+    Args:
+        measured, simulated: one output's measured and simulated series per segment, each
+            shape (N,), all at sample time ``dt`` [s].
+    """
+    sim = residual_spectrum(list(simulated), dt)
+    meas = residual_spectrum(list(measured), dt)
+    res = residual_spectrum([m - s for m, s in zip(measured, simulated, strict=True)], dt)
+    src = "simulated" if sim.peak_ratio >= PEAK_PROMINENCE else "measured"
+    f1 = float(sim.peak_hz if src == "simulated" else meas.peak_hz)
+    out: dict[str, object] = {"fundamental_hz": f1, "fundamental_from": src,
+                              "second_harmonic_ratio": 0.0, "residual_2f_over_f": 0.0}
+    if f1 <= 0.0 or res.freq.size < 2:
+        return out
+    half = HARMONIC_BAND * f1
+    p_f = max(_band_power(sim.freq, sim.psd, f1, half),
+              _band_power(meas.freq, meas.psd, f1, half))
+    p1 = _band_power(res.freq, res.psd, f1, half)
+    p2 = _band_power(res.freq, res.psd, 2.0 * f1, half)
+    out["second_harmonic_ratio"] = p2 / p_f if p_f > 0 else 0.0
+    out["residual_2f_over_f"] = p2 / p1 if p1 > 0 else 0.0
+    return out
+
+
+def sign_change_shares(errors: Sequence[Array], simulated: Sequence[Array]
+                       ) -> dict[str, float]:
+    """Where the error sits relative to the simulated output's sign changes.
+
+    Windows of ``+-W`` samples around every sign change of each simulated series, ``W`` =
+    ``SIGN_CHANGE_WINDOW`` times the median interval between its sign changes (at least 1).
+    Returned: ``error_share_near_sign_changes`` (share of the squared error in the windows),
+    ``sample_share_near_sign_changes`` (share of the samples in them) and
+    ``sign_change_concentration`` (their ratio: 1 uniform, above 1 the error sits at the sign
+    changes as for dry friction or backlash at reversals, below 1 away from them as for a
+    sign-blind reading, whose error is largest on the negative lobes), plus
+    ``sign_changes`` (count).
+
+    Args:
+        errors, simulated: one output's error and simulation per segment, shape (N,) each.
+    """
+    near = tot = 0.0
+    n_in = n = changes = 0
+    for e, ys in zip(errors, simulated, strict=True):
+        idx = np.flatnonzero(np.diff(np.signbit(ys).astype(np.int8)))
+        mask = np.zeros(ys.size, dtype=bool)
+        if idx.size:
+            gap = float(np.median(np.diff(idx))) if idx.size > 1 else float(ys.size)
+            w = max(1, round(SIGN_CHANGE_WINDOW * gap))
+            for i in idx:
+                mask[max(0, i - w + 1): i + w + 1] = True
+        e2 = np.asarray(e, float) ** 2
+        near += float(e2[mask].sum())
+        tot += float(e2.sum())
+        n_in += int(mask.sum())
+        n += ys.size
+        changes += int(idx.size)
+    err_share = near / tot if tot > 0 else 0.0
+    samp_share = n_in / n if n else 0.0
+    return {"error_share_near_sign_changes": err_share,
+            "sample_share_near_sign_changes": samp_share,
+            "sign_change_concentration": err_share / samp_share if samp_share > 0 else 0.0,
+            "sign_changes": float(changes)}
+
+
 def _column(y: Array, j: int, values: Array) -> Array:
     out = y.copy()
     out[:, j] = values
@@ -180,7 +298,10 @@ class SignBlindSensor(Effect):
         10 % of the samples (a linear drive then turns both ways); ``signature: True`` then.
         Also the share of the baseline squared error on the samples where the simulated output is
         negative (what ``|y|`` changes) and that sample share (a baseline can hide the
-        map by drifting positive: then both are small)."""
+        map by drifting positive: then both are small), the second-harmonic ratio of the
+        residual (:func:`harmonics`, on the segments at the first one's sample time) and the
+        error's share around the simulated output's sign changes
+        (:func:`sign_change_shares`)."""
         j = self.index
         neg = tot = 0.0
         nneg = n = 0
@@ -209,6 +330,14 @@ class SignBlindSensor(Effect):
             "measured_minimum": float(np.min(ym)) if ym.size else 0.0,
             "error_share_where_simulated_negative": neg / tot if tot > 0 else 0.0,
             "sample_share_where_simulated_negative": nneg / n if n else 0.0}
+        dt0 = ctx.views[0].dt if ctx.views else 0.0
+        same = [(v.y[:, j], yb[:, j]) for v, yb in zip(ctx.views, ctx.simulated, strict=True)
+                if v.dt == dt0]
+        if same:
+            extra.update(harmonics([m for m, _ in same], [s for _, s in same], dt0))
+        extra.update(sign_change_shares(
+            [v.y[:, j] - yb[:, j] for v, yb in zip(ctx.views, ctx.simulated, strict=True)],
+            [yb[:, j] for yb in ctx.simulated]))
         return extra, {}
 
 
@@ -239,12 +368,17 @@ class SensorOffset(Effect):
         return None if np.isfinite(v) and v != 0.0 else f"sensor_offset = {v}: no offset"
 
     def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
-        """The mean residual (output units), the refit's start."""
+        """The mean residual (output units), the refit's start, and its size against the
+        residual's standard deviation about it (``mean_residual_over_residual_std``: an
+        offset alone gives a large value, a zero-mean misfit a small one)."""
         j = self.index
         r = np.concatenate([v.y[:, j] - yb[:, j] for v, yb in zip(ctx.views, ctx.simulated,
                                                                  strict=True)])
         m = float(np.mean(r)) if r.size else 0.0
-        return {"mean_residual": m}, ({self.params[0].name: m} if m else {})
+        sd = float(np.std(r)) if r.size else 0.0
+        return ({"mean_residual": m, "mean_residual_over_residual_std": (
+                    abs(m) / sd if sd > 0 else (np.inf if m else 0.0))},
+                ({self.params[0].name: m} if m else {}))
 
 
 def _flat_top(y: Array) -> tuple[float, float, float, float]:
@@ -291,16 +425,34 @@ class SensorSaturation(Effect):
         """Flat tops: the measured maximum and minimum, the share of samples at each and how
         far the simulation goes beyond them; ``signature: True`` when at least
         ``FLAT_TOP_SHARE`` of the samples sit exactly at an extreme (a noisy signal never
-        repeats its extreme value). The start value is the largest measured magnitude."""
+        repeats its extreme value) and the baseline error is concentrated there
+        (``error_share_at_flat_tops``, the share of the squared error on the flat-top samples,
+        above ``sample_share_at_flat_tops``, their share of the samples: a quantised sensor
+        repeats its extreme grid value too, but its error is no larger there). Also
+        ``simulated_beyond_share_at_flat_tops``: the share of the flat-top samples where the
+        simulation goes beyond the extreme (1 for a clipped sensor). The start value is the
+        largest measured magnitude."""
         j = self.index
         ym = np.concatenate([v.y[:, j] for v in ctx.views])
         ys = np.concatenate([yb[:, j] for yb in ctx.simulated])
         hi, share_hi, lo, share_lo = _flat_top(ym)
+        tol = 1e-6 * max(hi - lo, 1e-300)
+        at_hi, at_lo = ym >= hi - tol, ym <= lo + tol
+        flat = at_hi | at_lo if max(share_hi, share_lo) >= FLAT_TOP_SHARE else np.zeros_like(at_hi)
+        e2 = (ym - ys) ** 2
+        e_tot = float(e2.sum())
+        err_share = float(e2[flat].sum()) / e_tot if e_tot > 0 else 0.0
+        samp_share = float(np.mean(flat)) if flat.size else 0.0
+        beyond = (at_hi & (ys > hi)) | (at_lo & (ys < lo))
         extra: dict[str, object] = {
             "measured_max": hi, "share_at_max": share_hi, "measured_min": lo,
             "share_at_min": share_lo, "simulated_max": float(np.max(ys)),
-            "simulated_min": float(np.min(ys))}
-        extra["signature"] = bool(max(share_hi, share_lo) >= FLAT_TOP_SHARE)
+            "simulated_min": float(np.min(ys)),
+            "error_share_at_flat_tops": err_share, "sample_share_at_flat_tops": samp_share,
+            "simulated_beyond_share_at_flat_tops": (
+                float(beyond[flat].mean()) if np.any(flat) else 0.0)}
+        extra["signature"] = bool(max(share_hi, share_lo) >= FLAT_TOP_SHARE
+                                  and err_share > samp_share)
         top = max(abs(hi), abs(lo))
         return extra, ({self.params[0].name: top} if 0 < top < self.params[0].upper else {})
 
@@ -352,10 +504,24 @@ class SensorQuantisation(Effect):
         return [(f"q={q:.4g}", {self.params[0].name: q})] if q > 0 else []
 
     def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
-        """The grid step read from the measured values and the share of samples on it."""
+        """The grid step ``q`` read from the measured values (or the ``step`` option) and the
+        share of samples on it; the baseline residual against the step:
+        ``residual_rms_over_step`` (RMS residual / ``q``; ``1/sqrt(12) = 0.289`` when the
+        rounding is all that is left, far above when the grid is finer than the model error)
+        and ``residual_share_within_half_step`` (share of samples with ``|residual| <= q/2``:
+        near 1 when the rounding is all that is left)."""
         j = self.index
         ym = np.concatenate([v.y[:, j] for v in ctx.views])
+        r = np.concatenate([v.y[:, j] - yb[:, j] for v, yb in zip(ctx.views, ctx.simulated,
+                                                                 strict=True)])
         q = float(self.options.get("step", 0.0) or 0.0)  # type: ignore[arg-type]
         q = q or self.grid_step(ym)
         on = float(np.mean(np.abs(ym / q - np.round(ym / q)) < 1e-3)) if q > 0 else 0.0
-        return {"grid_step": q, "share_on_grid": on}, ({self.params[0].name: q} if q else {})
+        rms = float(np.sqrt(np.mean(r ** 2))) if r.size else 0.0
+        extra: dict[str, object] = {
+            "grid_step": q, "share_on_grid": on, "residual_rms": rms,
+            "residual_rms_over_step": rms / q if q > 0 else 0.0,
+            "uniform_rounding_rms_over_step": 1.0 / float(np.sqrt(12.0)),
+            "residual_share_within_half_step": (float(np.mean(np.abs(r) <= 0.5 * q))
+                                                if q > 0 and r.size else 0.0)}
+        return extra, ({self.params[0].name: q} if q else {})

@@ -8,6 +8,8 @@ are the contract's (:mod:`dvt_model.contract`).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 ROSBAG2_VERSION = 9
 """``metadata.yaml`` version written (as ``rosbags`` writes it for Jazzy)."""
 ROS_DISTRO = "jazzy"
@@ -21,3 +23,17 @@ RECOVER_HINT = "dvt-bag recover"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 NS = 1_000_000_000
 """Nanoseconds per second."""
+
+
+def recover_hint(path: Path) -> str:
+    """The hint appended to a read error: run :data:`RECOVER_HINT` where it can help (an
+    ``.mcap`` file, or a directory holding one: a killed recording); otherwise say that ``path``
+    is not a bag directory (a README is not a killed recording)."""
+    if path.is_file():
+        has_mcap = path.suffix == ".mcap"
+    else:
+        has_mcap = path.is_dir() and any(path.glob("*.mcap"))
+    if has_mcap:
+        return f" (if the recording was killed, run `{RECOVER_HINT} {path}`)"
+    return (" (not a bag directory: a recording is a directory holding metadata.yaml and an "
+            ".mcap file)")

@@ -50,7 +50,13 @@ from dvt_model.contract import (
 from dvt_model.errors import BagError, RecordingWarning
 from dvt_model.recording import mcapindex
 from dvt_model.recording.cdr import CdrLayout, JointStateFields, cdr_layout, parse_joint_state
-from dvt_model.recording.layout import MCAP_MAGIC, METADATA_FILE, RECOVER_HINT, TRUTH_FILE
+from dvt_model.recording.layout import (
+    MCAP_MAGIC,
+    METADATA_FILE,
+    RECOVER_HINT,
+    TRUTH_FILE,
+    recover_hint,
+)
 from dvt_model.recording.mcapindex import RawMessages, message_at, raw_from_list, rows, view_as
 from dvt_model.recording.pairing import pair_stamps
 
@@ -134,8 +140,7 @@ def open_reader(path: Path) -> Reader:
         reader = Reader(path)
         reader.open()
     except (ReaderError, OSError) as exc:
-        raise BagError(f"{path}: cannot open bag: {exc} (if the recording was killed, try "
-                       f"`{RECOVER_HINT} {path}`)") from exc
+        raise BagError(f"{path}: cannot open bag: {exc}{recover_hint(path)}") from exc
     return reader
 
 

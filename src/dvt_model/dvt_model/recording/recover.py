@@ -4,7 +4,9 @@ A recording that was killed has no ``metadata.yaml`` and an MCAP file without su
 :func:`recover` (``dvt-bag recover PATH``) reads every complete chunk sequentially with
 :class:`~dvt_model.recording.mcapindex.McapScan` (``mcap``'s stream reader; the reader uses the
 same scan to read such a file directly, with a warning) and rewrites a proper bag through the
-one writer (:class:`~dvt_model.recording.write.BagRecorder`).
+one writer (:class:`~dvt_model.recording.write.BagRecorder`). On a terminal it shows how far it
+has read (:class:`~dvt_model.progress.ProgressLine` on stderr; nothing when stderr is not a
+terminal).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from mcap.records import Channel, Schema
 from rosbags.rosbag2 import Reader, ReaderError
 
 from dvt_model.errors import RecordingError
+from dvt_model.progress import ProgressLine
 from dvt_model.recording.layout import MCAP_MAGIC, METADATA_FILE
 from dvt_model.recording.mcapindex import McapScan
 from dvt_model.recording.write import BagRecorder, fsync_dir
@@ -74,11 +77,18 @@ def is_readable(path: str | Path) -> bool:
     return True
 
 
-def _salvage(src: Path, out: BagRecorder, result: RecoverResult) -> None:
+PROGRESS_EVERY = 2000
+"""Messages between two progress updates of :func:`recover` (each update is throttled too)."""
+
+
+def _salvage(src: Path, out: BagRecorder, result: RecoverResult,
+             progress: ProgressLine | None = None) -> None:
     """Copy every complete record of ``src`` into ``out`` (:class:`McapScan`, the one salvage
-    scanner); note why reading stopped."""
+    scanner); note why reading stopped; show how far it has read on ``progress``."""
     added: dict[int, str] = {}
     scan = McapScan(src)
+    size = max(src.stat().st_size, 1)
+    n = 0
     for rec in scan:
         if isinstance(rec, Channel):
             _add_channel(out, rec, scan.schemas, added)
@@ -88,6 +98,10 @@ def _salvage(src: Path, out: BagRecorder, result: RecoverResult) -> None:
             result.skipped += 1
             continue
         out.write(topic, rec.data, rec.log_time)
+        n += 1
+        if progress is not None and n % PROGRESS_EVERY == 0:
+            progress.update(f"{src.name}: read {100 * min(scan.offset / size, 1.0):.0f} % "
+                            f"of {size / 1e6:.3g} MB, {n} messages")
     if scan.stopped:
         result.stopped = scan.stopped
 
@@ -118,8 +132,8 @@ def _unique_aside(p: Path, suffix: str) -> Path:
     return target
 
 
-def recover(path: str | Path, out: str | Path | None = None, *, force: bool = False
-            ) -> RecoverResult:
+def recover(path: str | Path, out: str | Path | None = None, *, force: bool = False,
+            progress: ProgressLine | None = None) -> RecoverResult:
     """Rebuild a readable rosbag2 directory from a killed recording.
 
     Reads every complete chunk/record of the ``.mcap`` file(s) in ``path`` (a bag directory or
@@ -132,6 +146,9 @@ def recover(path: str | Path, out: str | Path | None = None, *, force: bool = Fa
       ``metadata.yaml`` take their place.
 
     A bag that is already readable is left alone (``already_readable``) unless ``force``.
+    ``progress``: where to show how far it has read (default: a
+    :class:`~dvt_model.progress.ProgressLine` on stderr, silent unless stderr is a terminal);
+    the line is cleared before returning.
     Raises :class:`~dvt_model.errors.RecordingError` for a missing path, no ``.mcap`` file, a
     file that is not MCAP/rosbag2, or an existing ``out``.
     """
@@ -139,6 +156,16 @@ def recover(path: str | Path, out: str | Path | None = None, *, force: bool = Fa
     bagdir, files = _bag_files(src)
     if not force and src.is_dir() and out is None and is_readable(src):
         return RecoverResult(output=src, already_readable=True)
+    line = progress if progress is not None else ProgressLine.stderr("dvt-bag recover: ")
+    try:
+        return _recover(bagdir, files, out, line)
+    finally:
+        line.close()
+
+
+def _recover(bagdir: Path, files: list[Path], out: str | Path | None, line: ProgressLine
+             ) -> RecoverResult:
+    """:func:`recover` after the checks that need no reading."""
     for f in files:
         with f.open("rb") as fh:
             if fh.read(8) != MCAP_MAGIC:
@@ -151,7 +178,7 @@ def recover(path: str | Path, out: str | Path | None = None, *, force: bool = Fa
         try:
             with BagRecorder(target, fsync=True, flush_period=math.inf) as rec:
                 for f in files:
-                    _salvage(f, rec, result)
+                    _salvage(f, rec, result, line)
         except BaseException:
             shutil.rmtree(target, ignore_errors=True)
             raise
@@ -170,7 +197,7 @@ def recover(path: str | Path, out: str | Path | None = None, *, force: bool = Fa
     try:
         with BagRecorder(tmpdir, fsync=True, flush_period=math.inf, file_name=name) as rec:
             for f in files:
-                _salvage(f, rec, result)
+                _salvage(f, rec, result, line)
     except BaseException:
         shutil.rmtree(tmpdir, ignore_errors=True)
         raise

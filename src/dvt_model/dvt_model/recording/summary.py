@@ -9,7 +9,7 @@ from pathlib import Path
 from rosbags.rosbag2 import Reader, ReaderError
 
 from dvt_model.errors import RecordingError
-from dvt_model.recording.layout import METADATA_FILE, NS, RECOVER_HINT
+from dvt_model.recording.layout import METADATA_FILE, NS, recover_hint
 
 
 @dataclass
@@ -69,8 +69,7 @@ def bag_summary(path: str | Path) -> BagSummary:
     if not p.exists():
         raise RecordingError(f"{p}: no such bag directory")
     if p.is_dir() and not (p / METADATA_FILE).exists():
-        raise RecordingError(f"{p}: metadata.yaml is missing (killed recording?); run "
-                             f"`{RECOVER_HINT} {p}`")
+        raise RecordingError(f"{p}: metadata.yaml is missing{recover_hint(p)}")
     try:
         with Reader(p) as reader:
             first: dict[str, int] = {}
@@ -86,8 +85,7 @@ def bag_summary(path: str | Path) -> BagSummary:
                 first[conn.topic] = min(first[conn.topic], t)
                 last[conn.topic] = max(last.get(conn.topic, t), t)
     except (ReaderError, OSError, ValueError, KeyError) as exc:
-        raise RecordingError(f"{p}: cannot read bag: {exc} (if the recording was killed, run "
-                             f"`{RECOVER_HINT} {p}`)") from exc
+        raise RecordingError(f"{p}: cannot read bag: {exc}{recover_hint(p)}") from exc
     topics = [TopicSummary(tp, types[tp], counts[tp], first.get(tp), last.get(tp))
               for tp in sorted(types)]
     start = min(first.values(), default=0)
