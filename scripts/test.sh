@@ -4,7 +4,7 @@
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
-bash scripts/bootstrap.sh
+bash scripts/bootstrap.sh --dev
 export PATH="$root/.venv/bin:$PATH"
 echo "== ruff" >&2
 ruff check src tests examples

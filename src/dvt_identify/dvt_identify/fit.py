@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from dvt_identify.data import Segment
 from dvt_identify.effects import BrakeEngagement, BrakeLockup
 from dvt_identify.errors import FitError
-from dvt_identify.simulation import OEModel, zoh_decimate
+from dvt_identify.simulation import DivergedError, OEModel, zoh_decimate
 from dvt_identify.structures import PENALTY, initial_state
 from dvt_identify.uncertainty import sandwich_covariance
 
@@ -328,7 +328,8 @@ class OEFit:
                 with np.errstate(all="ignore"):
                     yh = self.model.simulate(theta, seg, x0)
                 parts.append(((seg.y - yh) / w).ravel())
-            except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError):
+            except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError,
+                    DivergedError):  # a diverged simulation (OEModel names it): the penalty
                 parts.append(np.full(seg.y.size, PENALTY))
         return _clean(np.concatenate(parts))
 

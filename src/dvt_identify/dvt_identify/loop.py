@@ -66,7 +66,7 @@ from dvt_identify.fit import OEFit, Progress, fit_segments
 from dvt_identify.identifiability import Identifiability
 from dvt_identify.metrics import Figures, figures
 from dvt_identify.resid import OutputResidual, Spectrum, residual_analysis, residual_spectrum
-from dvt_identify.simulation import OEModel
+from dvt_identify.simulation import DivergedError, OEModel
 from dvt_identify.uncertainty import Comparison, diebold_mariano
 
 Array = NDArray[np.float64]
@@ -400,8 +400,11 @@ def _column(model: OEModel, theta: Array, segments: Sequence[Segment], x0s: Sequ
     th[idx] += h
     parts = []
     for seg, x0, y0 in zip(segments, x0s, base, strict=True):
-        with np.errstate(all="ignore"):
-            yh = model.simulate(th, seg, x0)
+        try:
+            with np.errstate(all="ignore"):
+                yh = model.simulate(th, seg, x0)
+        except DivergedError:  # the probe left the simulable region: no information
+            return np.zeros(sum(s.y.size for s in segments))
         parts.append(((yh - y0) / w).ravel() / h)
     col = np.concatenate(parts)
     return col if np.all(np.isfinite(col)) else np.zeros_like(col)
@@ -572,9 +575,13 @@ def sensitivities(fit: OEFit, segments: Sequence[Segment], rel_step: float = 1e-
     cols = []
 
     def sim(th: Array, x0s: Sequence[Array]) -> Array:
-        with np.errstate(all="ignore"):
-            return np.concatenate([(m.simulate(th, s, x0) / w).ravel()
-                                   for s, x0 in zip(segments, x0s, strict=True)])
+        try:
+            with np.errstate(all="ignore"):
+                return np.concatenate([(m.simulate(th, s, x0) / w).ravel()
+                                       for s, x0 in zip(segments, x0s, strict=True)])
+        except DivergedError:  # a step off a bound-hugging optimum (M22 at 1e-6): the
+            # column becomes 0 below (nan_to_num), i.e. no direction the model can absorb
+            return np.full(sum(s.y.size for s in segments), np.nan)
     for i in np.flatnonzero(m.free):
         h = rel_step * max(abs(float(theta[i])), 1e-8)
         tp, tm = theta.copy(), theta.copy()

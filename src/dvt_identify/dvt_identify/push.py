@@ -6,11 +6,14 @@ effect maps to the terms of the node's ``effects`` JSON that it declares
 (:meth:`dvt_identify.effects.Effect.model_terms`; Coulomb with offset, Stribeck, windage,
 measurement delay, sensor gain; the position-dependent ``gravity_load`` -> ``gravity``,
 ``periodic_disturbance`` -> ``angle_periodic``, ``unlisted`` -> one ``library`` term per
-coefficient). Members, angle forms and output indices are reordered from the model's outputs
-to the node's speeds (:data:`dvt_model.contract.SPEED_NAMES`) when the outputs are those names
-in another order; a ``library`` term's input is mapped from the model's input name to the
-node's current (:data:`~dvt_model.contract.CURRENT_NAMES`; ``input_joints``, else the name
-itself or :data:`INPUT_ALIASES`).
+coefficient). Members, angle forms and output indices are mapped from the model's outputs
+to the node's speeds (:data:`dvt_model.contract.SPEED_NAMES`) when the outputs include those
+names, in any order and with other outputs besides (the ``dvt-position`` description's angle
+states ``sun_shaft_angle``, ``carrier3_angle``): a form keeps its entries on the speeds, and a
+term whose form has a non-zero entry on another output, or whose ``output`` is not a speed, is
+not pushed (the node's terms act on its two speeds); a ``library`` term's input is mapped from
+the model's input name to the node's current (:data:`~dvt_model.contract.CURRENT_NAMES`;
+``input_joints``, else the name itself or :data:`INPUT_ALIASES`).
 
 Effects the model node cannot represent (backlash, an extra brake-engagement stage or dead
 time, a disturbance clocked on time, ...) or whose values it would refuse are listed in
@@ -136,7 +139,8 @@ class _Mapping:
 
     Attributes:
         outputs: the model's output (state) names.
-        order: ``order[j]`` the model output of node speed ``j``, or ``None`` (positional).
+        order: ``order[j]`` the model output of node speed ``j``, or ``None`` (positional;
+            the outputs do not include the node's speeds).
         inputs: model input name -> node current name, or ``None`` (the node has no such one).
         transformed: model input name -> label of the effect that transforms it.
         angle_source: :data:`~dvt_identify.effects.position.ANGLE_FROM_POSITION` when every
@@ -172,8 +176,9 @@ def _effect_terms(pairs: Sequence[tuple[Effect, Any]], ctx: _Mapping
         if why:
             skipped.append(f"{eff.label()} ({why})")
             continue
+        n_node = len(SPEED_NAMES) if ctx.order is not None else len(ctx.outputs)
         try:
-            checked = validate_effects([*terms, *mapped], n_outputs=len(ctx.outputs))
+            checked = validate_effects([*terms, *mapped], n_outputs=n_node)
         except DvtModelError as exc:
             skipped.append(f"{eff.label()} (the model node would refuse it: {exc})")
             continue
@@ -192,11 +197,19 @@ def _node_term(term: Term, ctx: _Mapping) -> tuple[Term | None, str]:
     """``term`` over the node's speeds and currents, or ``(None, why not)``."""
     out = dict(term)
     if ctx.order is not None:
+        others = [i for i in range(len(ctx.outputs)) if i not in ctx.order]
         for key in ("member", "angle"):
             if key in out:
-                vec = list(out[key])
+                vec = [float(v) for v in out[key]]
+                extra = [ctx.outputs[i] for i in others if i < len(vec) and vec[i] != 0.0]
+                if extra:
+                    return None, (f"its {key} acts on {extra}, not only on the model node's "
+                                  f"speeds {list(SPEED_NAMES)}")
                 out[key] = [vec[i] for i in ctx.order]
-        if isinstance(out.get("output"), int) and 0 <= out["output"] < len(ctx.order):
+        if isinstance(out.get("output"), int) and 0 <= out["output"] < len(ctx.outputs):
+            if out["output"] not in ctx.order:
+                return None, (f"its output {ctx.outputs[out['output']]!r} is not a speed of "
+                              f"the model node ({list(SPEED_NAMES)})")
             out["output"] = ctx.order.index(out["output"])
     name = out.get("input")
     if name:
@@ -212,11 +225,13 @@ def _node_term(term: Term, ctx: _Mapping) -> tuple[Term | None, str]:
 
 
 def _speed_order(outputs: Sequence[str]) -> list[int] | None:
-    """The model output of each node speed when the outputs are :data:`SPEED_NAMES` in some
-    order, else ``None`` (members taken as given)."""
-    if sorted(outputs) != sorted(SPEED_NAMES) or len(outputs) != len(SPEED_NAMES):
+    """The model output of each node speed when the outputs include :data:`SPEED_NAMES` (in
+    any order, other outputs besides, each name once), else ``None`` (members taken as
+    given)."""
+    names = list(outputs)
+    if any(names.count(n) != 1 for n in SPEED_NAMES):
         return None
-    return [list(outputs).index(n) for n in SPEED_NAMES]
+    return [names.index(n) for n in SPEED_NAMES]
 
 
 def _input_names(inputs: Sequence[str], input_joints: Sequence[str] | None

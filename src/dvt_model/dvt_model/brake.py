@@ -59,3 +59,46 @@ def capacity_step(capacity: NDArray[np.float64], target: NDArray[np.float64], dt
     end = target + (capacity - target) * e
     mean = target + (capacity - target) * (1.0 - e) * time_constant / dt
     return end, mean
+
+
+class BandLaw:
+    """:func:`band_torques` and :func:`capacity_step` for one band-brake data set on plain
+    floats, for a per-sample loop (:meth:`dvt_model.hybrid.HybridModel.step`): the same
+    operations in the same order, so the same results bit for bit, with the per-band gains
+    and time constants converted once and ``exp(-dt / tau)`` kept per ``dt`` (the node's
+    float-second stamps give a few distinct step lengths).
+    """
+
+    def __init__(self, brake: BrakeParams) -> None:
+        self.gains: list[float] = [float(g) for g in brake.gains]
+        self.time_constants = np.asarray(brake.time_constants, dtype=float)
+        self._tau: list[float] = self.time_constants.tolist()
+        self._decay: dict[float, list[float]] = {}  # exp(-dt / tau) per band by dt
+
+    def targets(self, current: list[float]) -> list[float]:
+        """Static torque of each band [N m] for the three brake-motor currents [A]
+        (:func:`band_torques`)."""
+        return [g * _clip_low(i) for g, i in zip(self.gains, current, strict=True)]
+
+    def step(self, capacity: list[float], target: list[float], dt: float
+             ) -> tuple[list[float], list[float]]:
+        """(capacity at the step end, mean capacity over the step) [N m], 3 each
+        (:func:`capacity_step` with these time constants)."""
+        decay = self._decay.get(dt)
+        if decay is None:
+            decay = np.exp(-dt / self.time_constants).tolist()
+            if len(self._decay) < 1024:
+                self._decay[dt] = decay
+        end = []
+        mean = []
+        for c, x, e, tau in zip(capacity, target, decay, self._tau, strict=True):
+            end.append(x + (c - x) * e)
+            mean.append(x + (c - x) * (1.0 - e) * tau / dt)
+        return end, mean
+
+
+def _clip_low(x: float) -> float:
+    """``np.clip(x, 0.0, None)`` for one float (-0.0 -> 0.0, NaN stays NaN)."""
+    if x > 0.0:
+        return x
+    return 0.0 if x <= 0.0 else x

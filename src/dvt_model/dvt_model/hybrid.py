@@ -40,6 +40,7 @@ fully locked transmission keeps them.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -47,7 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm, null_space
 
-from dvt_model.brake import band_torques, capacity_step
+from dvt_model.brake import BandLaw
 from dvt_model.dynamics import RigidModel, rigid_model
 from dvt_model.errors import SimulationError
 from dvt_model.load import JointLoad
@@ -130,10 +131,11 @@ class _Mode:
     Gamma: Array  # (n, 2): generalised force held over dt -> delta z
     Psi: Array  # (n, n): z at the step start -> integral of z over the step
     Lam: Array  # (n, 2): generalised force held over dt -> integral of z over the step
+    identity: bool = False  # N is the 2x2 identity (no band holds)
 
 
 class HybridModel:
-    """The hybrid DVT model; stateless apart from a cache of discretisations.
+    """The hybrid DVT model; stateless apart from caches (discretisations, band decays).
 
     Args:
         rigid: M, D, Q of the transmission.
@@ -168,7 +170,15 @@ class HybridModel:
         self.angle_force = angle_force
         self.angle_input_force = angle_input_force
         self._ring = np.asarray(rigid.Q_brake, dtype=float)  # (2, 3) ring speed forms
-        self._modes: dict[tuple[LockSet, float], _Mode] = {}
+        # the step's constants as plain floats (``brake`` is frozen; its array properties
+        # would be rebuilt on every call)
+        self._ring_cols = [(float(a), float(b)) for a, b in self._ring.T]
+        self._q_motor = [float(q) for q in rigid.Q_motor]
+        self._motor_constant = float(rigid.motor_constant)
+        self._bands = BandLaw(brake)
+        self._static_factor = float(brake.static_factor)
+        self._modes: dict[tuple[LockSet, float], _Mode] = {}  # by rounded dt
+        self._modes_raw: dict[tuple[LockSet, float], _Mode] = {}  # by raw dt
         self._bases: dict[LockSet, tuple[Array, Array, Array]] = {}
         self._holding_maps: dict[LockSet, Array] = {}
 
@@ -205,12 +215,20 @@ class HybridModel:
         return out
 
     def _mode(self, locked: LockSet, dt: float) -> _Mode:
+        """The discretisation for ``locked`` over ``dt``, cached per lock set and ``dt``
+        rounded to 1e-12 s; found again by the raw ``dt`` first (``round`` is slow, and the
+        node's float-second stamps give a few distinct raw step lengths)."""
+        mode = self._modes_raw.get((locked, dt))
+        if mode is not None:
+            return mode
         key = (locked, round(dt, 12))
         mode = self._modes.get(key)
         if mode is None:
             mode = self._discretise(locked, dt)
             if len(self._modes) < 256:
                 self._modes[key] = mode
+        if len(self._modes_raw) < 1024:
+            self._modes_raw[(locked, dt)] = mode
         return mode
 
     def _discretise(self, locked: LockSet, dt: float) -> _Mode:
@@ -226,25 +244,50 @@ class HybridModel:
         big[:n, n:n + 2] = Br
         big[n + 2:, :n] = np.eye(n)
         e = expm(big * dt)
-        return _Mode(N, Mr_inv, e[:n, :n], e[:n, n:n + 2], e[n + 2:, :n], e[n + 2:, n:n + 2])
+        return _Mode(N, Mr_inv, e[:n, :n], e[:n, n:n + 2], e[n + 2:, :n], e[n + 2:, n:n + 2],
+                     identity=not any(locked))
 
-    def _forces(self, omega: Array, t: float, u: Array, cap: Array,
-                signs: Array, locked: LockSet, theta: Array, dt: float = 0.0) -> Array:
-        """Generalised force at the step start; ``u`` = (i_motor, i_brake (3,)) [A], ``dt``
-        the step it is held over (0: instantaneous)."""
-        f = self.rigid.Q_motor * (self.rigid.motor_constant * u[0])
+    def _base_force(self, omega: Array, t: float, i_motor: float, cap: list[float],
+                    signs: list[float], locked: LockSet, theta: Array) -> tuple[float, float]:
+        """Generalised force at the step start but the ``angle_input_force``: drive motor,
+        sliding bands 1-3, ``extra_force``, load, ``angle_force``, summed in this order in
+        plain floats."""
+        m = self._motor_constant * i_motor
+        f0 = self._q_motor[0] * m
+        f1 = self._q_motor[1] * m
         for k in range(3):
             if not locked[k] and signs[k] != 0.0 and cap[k] > _ENGAGED:
-                f = f - self._ring[:, k] * (cap[k] * signs[k])
+                s = cap[k] * signs[k]
+                c0, c1 = self._ring_cols[k]
+                f0 = f0 - c0 * s
+                f1 = f1 - c1 * s
         if self.extra_force is not None:
-            f = f + np.asarray(self.extra_force(omega, t), dtype=float)
-        if self.load is not None:
-            f = f + self.load.generalised_force(theta, omega)
+            e = self.extra_force(omega, t)
+            f0 = f0 + float(e[0])
+            f1 = f1 + float(e[1])
+        if self.load is not None:  # its generalised force is (0, carrier3_torque)
+            f0 = f0 + 0.0
+            f1 = f1 + self.load.carrier3_torque(float(theta[1]), float(omega[1]))
         if self.angle_force is not None:
-            f = f + np.asarray(self.angle_force(theta, omega, t), dtype=float)
+            e = self.angle_force(theta, omega, t)
+            f0 = f0 + float(e[0])
+            f1 = f1 + float(e[1])
+        return f0, f1
+
+    def _forces(self, omega: Array, t: float, i_motor: float, u: Array | None,
+                cap: list[float], signs: list[float], locked: LockSet, theta: Array,
+                dt: float = 0.0, base: tuple[float, float] | None = None) -> Array:
+        """Generalised force (2,) at the step start: :meth:`_base_force` (``base`` if already
+        evaluated at these arguments) plus the ``angle_input_force`` at the inputs ``u`` =
+        (i_motor, i_brake (3,)) [A] (built by :meth:`step` when that force is set) held over
+        ``dt`` (0: instantaneous)."""
+        f0, f1 = base if base is not None else self._base_force(omega, t, i_motor, cap, signs,
+                                                                 locked, theta)
         if self.angle_input_force is not None:
-            f = f + np.asarray(self.angle_input_force(theta, omega, t, u, dt), dtype=float)
-        return np.asarray(f)
+            e = self.angle_input_force(theta, omega, t, u, dt)  # type: ignore[arg-type]
+            f0 = f0 + float(e[0])
+            f1 = f1 + float(e[1])
+        return np.array((f0, f1))
 
     def angle_forces(self, theta: ArrayLike, omega: ArrayLike, t: float = 0.0,
                      u: ArrayLike | None = None, dt: float = 0.0) -> Array:
@@ -311,83 +354,112 @@ class HybridModel:
 
     def step(self, state: HybridState, dt: float, i_motor: float,
              i_brake: ArrayLike) -> HybridState:
-        """Advance ``state`` by ``dt`` [s] with currents held (ZOH): motor [A], brakes (3,) [A]."""
+        """Advance ``state`` by ``dt`` [s] with currents held (ZOH): motor [A], brakes (3,) [A].
+
+        The three-vectors (band targets, capacities, slip signs) and the forces are plain
+        floats here, summed in the order of the plain numpy formulation, and the matrix products
+        stay numpy's: the result is that formulation's bit for bit (``test_hybrid_fast.py``).
+        """
         if not dt > 0.0:
             raise SimulationError(f"dt: expected > 0 s, got {dt!r}")
         ib = np.asarray(i_brake, dtype=float).reshape(3)
-        u = np.empty(4)
-        u[0] = i_motor
-        u[1:] = ib
-        target = band_torques(self.brake, ib)
+        i_motor = float(i_motor)
+        u: Array | None = None
+        if self.angle_input_force is not None:
+            u = np.empty(4)
+            u[0] = i_motor
+            u[1:] = ib
+        target = self._bands.targets(ib.tolist())
         omega = state.omega
         theta = state.theta
         locked = state.locked
-        rings = omega @ self._ring
+        rings_arr = omega @ self._ring
+        rings = rings_arr.tolist()
+        cap_end_arr: Array | None = None
         if self.engagement is None:
-            cap_end, cap_mean = capacity_step(state.capacity, target, dt,
-                                              self.brake.time_constants)
+            cap_end, cap_mean = self._bands.step(state.capacity.tolist(), target, dt)
         else:
-            cap_end, cap_mean = self.engagement(state.capacity, target, dt, rings)
-        hold_cap = self.brake.static_factor * cap_mean
-        signs = np.sign(rings)
+            end, mean = self.engagement(state.capacity, np.array(target), dt, rings_arr)
+            cap_end_arr = end
+            cap_end, cap_mean = np.asarray(end).tolist(), np.asarray(mean).tolist()
+        signs = [_sign(r) for r in rings]
+        # the step-start force but the angle_input_force, while omega, locks and signs stand
+        base: tuple[float, float] | None = None
         # releases: a locked band that cannot hold the ring any more lets it slip
         for _ in range(3):
             if not any(locked):
                 break
-            f = self._forces(omega, state.t, u, cap_mean, signs, locked, theta)
-            lam = self.holding_torques(omega, f, locked)
-            excess = [abs(lam[k]) / max(hold_cap[k], _ENGAGED) if locked[k] else 0.0
-                      for k in range(3)]
-            k = int(np.argmax(excess))
+            base = self._base_force(omega, state.t, i_motor, cap_mean, signs, locked, theta)
+            f = self._forces(omega, state.t, i_motor, u, cap_mean, signs, locked, theta,
+                             base=base)
+            lam = self.holding_torques(omega, f, locked).tolist()
+            excess = [abs(lam[k]) / max(self._static_factor * cap_mean[k], _ENGAGED)
+                      if locked[k] else 0.0 for k in range(3)]
+            k = _argmax(excess)
             if excess[k] <= 1.0:
                 break
             locked = _with(locked, k, False)
-            signs[k] = -np.sign(lam[k])
+            signs[k] = -_sign(lam[k])
+            base = None
         # engagement at rest: a still ring with an engaged band locks if it can be held
         for k in range(3):
             if (not locked[k] and cap_mean[k] > _ENGAGED and abs(rings[k]) < _ZERO_SPEED
-                    and self._can_lock(omega, state.t, u, cap_mean, signs, locked, k,
-                                       theta)):
+                    and self._can_lock(omega, state.t, i_motor, u, cap_mean, signs, locked,
+                                       k, theta)):
                 locked = _with(locked, k, True)
                 omega = self._project(omega, locked)
-        omega, locked, signs, dtheta = self._advance(omega, state.t, dt, u, cap_mean,
-                                                     signs, locked, theta, depth=0)
+                base = None
+        omega, locked, signs, dtheta = self._advance(omega, state.t, dt, i_motor, u, cap_mean,
+                                                     signs, locked, theta, depth=0, base=base)
         theta = theta + dtheta
-        f = self._forces(omega, state.t + dt, u, cap_end, signs, locked, theta)
-        holding = self.holding_torques(omega, f, locked)
-        return HybridState(t=state.t + dt, omega=omega, capacity=cap_end, locked=locked,
-                           holding=holding, theta=theta)
+        if any(locked):
+            f = self._forces(omega, state.t + dt, i_motor, u, cap_end, signs, locked, theta)
+            holding = self.holding_torques(omega, f, locked)
+        else:  # nothing to hold: the force at the end is not needed
+            holding = np.zeros(3)
+        return HybridState(t=state.t + dt, omega=omega,
+                           capacity=cap_end_arr if cap_end_arr is not None else np.array(cap_end),
+                           locked=locked, holding=holding, theta=theta)
 
-    def _can_lock(self, omega: Array, t: float, u: Array, cap: Array, signs: Array,
-                  locked: LockSet, k: int, theta: Array) -> bool:
+    def _can_lock(self, omega: Array, t: float, i_motor: float, u: Array | None,
+                  cap: list[float], signs: list[float], locked: LockSet, k: int,
+                  theta: Array) -> bool:
         trial = _with(locked, k, True)
         w = self._project(omega, trial)
-        f = self._forces(w, t, u, cap, signs, trial, theta)
+        f = self._forces(w, t, i_motor, u, cap, signs, trial, theta)
         lam = self.holding_torques(w, f, trial)
-        return bool(abs(lam[k]) <= self.brake.static_factor * cap[k])
+        return bool(abs(float(lam[k])) <= self._static_factor * cap[k])
 
-    def _advance(self, omega: Array, t: float, dt: float, u: Array, cap: Array,
-                 signs: Array, locked: LockSet, theta: Array, depth: int
-                 ) -> tuple[Array, LockSet, Array, Array]:
-        """Advance over ``dt``; returns speeds, lock set, slip signs and the angle change."""
+    def _advance(self, omega: Array, t: float, dt: float, i_motor: float, u: Array | None,
+                 cap: list[float], signs: list[float], locked: LockSet, theta: Array,
+                 depth: int, base: tuple[float, float] | None = None
+                 ) -> tuple[Array, LockSet, list[float], Array]:
+        """Advance over ``dt``; returns speeds, lock set, slip signs and the angle change
+        (``base``: :meth:`_base_force` at these arguments if already evaluated)."""
         if depth == 0:
             mode = self._mode(locked, dt)
         else:
             mode = self._discretise(locked, dt)
-        f = self._forces(omega, t, u, cap, signs, locked, theta, dt)
-        if mode.N.shape[1] == 0:
+        if mode.N.shape[1] == 0:  # all held: nothing moves (and no force is needed)
             return np.zeros(2), locked, signs, np.zeros(2)
-        z = mode.N.T @ omega
-        omega_end = mode.N @ (mode.Phi @ z + mode.Gamma @ f)
-        dtheta = mode.N @ (mode.Psi @ z + mode.Lam @ f)
+        f = self._forces(omega, t, i_motor, u, cap, signs, locked, theta, dt, base)
+        N = mode.N
+        z = omega if mode.identity and _identity_keeps(omega) else N.T @ omega
+        v = mode.Phi @ z + mode.Gamma @ f
+        omega_end = v if mode.identity and _identity_keeps(v) else N @ v
+        v = mode.Psi @ z + mode.Lam @ f
+        dtheta = v if mode.identity and _identity_keeps(v) else N @ v
         if depth >= 4:
             return omega_end, locked, signs, dtheta
-        r0 = omega @ self._ring
-        r1 = omega_end @ self._ring
+        # rings that can reach zero speed within the step: slipping with the band engaged
+        slipping = [k for k in range(3)
+                    if not (locked[k] or cap[k] <= _ENGAGED or signs[k] == 0.0)]
+        if not slipping:
+            return omega_end, locked, signs, dtheta
+        r0 = (omega @ self._ring).tolist()
+        r1 = (omega_end @ self._ring).tolist()
         first, frac = -1, 2.0
-        for k in range(3):
-            if locked[k] or cap[k] <= _ENGAGED or signs[k] == 0.0:
-                continue
+        for k in slipping:
             if r0[k] * signs[k] > 0.0 and r1[k] * signs[k] <= 0.0:
                 th = r0[k] / (r0[k] - r1[k])
                 if th < frac:
@@ -395,11 +467,11 @@ class HybridModel:
         if first < 0:
             return omega_end, locked, signs, dtheta
         t1 = max(frac * dt, 1e-9)
-        w_mid, locked, signs, d1 = self._advance(omega, t, t1, u, cap, signs, locked,
-                                                 theta, depth + 1)
+        w_mid, locked, signs, d1 = self._advance(omega, t, t1, i_motor, u, cap, signs,
+                                                 locked, theta, depth + 1)
         th_mid = theta + d1
         k = first
-        if self._can_lock(w_mid, t + t1, u, cap, signs, locked, k, th_mid):
+        if self._can_lock(w_mid, t + t1, i_motor, u, cap, signs, locked, k, th_mid):
             locked = _with(locked, k, True)
             w_mid = self._project(w_mid, locked)
         else:
@@ -408,7 +480,7 @@ class HybridModel:
         rest = dt - t1
         if rest <= 1e-12:
             return w_mid, locked, signs, d1
-        w_end, locked, signs, d2 = self._advance(w_mid, t + t1, rest, u, cap, signs,
+        w_end, locked, signs, d2 = self._advance(w_mid, t + t1, rest, i_motor, u, cap, signs,
                                                  locked, th_mid, depth + 1)
         return w_end, locked, signs, d1 + d2
 
@@ -468,6 +540,34 @@ class HybridModel:
         """``1/2 omega^T M omega`` [J] for shape (2,) or (N, 2)."""
         w = np.asarray(omega, dtype=float)
         return np.asarray(0.5 * np.einsum("...i,ij,...j->...", w, self.rigid.M, w))
+
+
+def _identity_keeps(v: Array) -> bool:
+    """Whether the 2x2 identity times ``v`` gives ``v`` bit for bit, so the product can be
+    skipped: both entries finite and non-zero (the product adds ``0 * v_j`` to each entry, which
+    can flip the sign of a zero and turns an infinity into NaN)."""
+    a, b = v.tolist()
+    return a != 0.0 and b != 0.0 and math.isfinite(a) and math.isfinite(b)
+
+
+def _sign(x: float) -> float:
+    """``np.sign(x)`` for a float: -1.0, 0.0 or 1.0 (NaN stays NaN)."""
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return 0.0 if x == 0.0 else x
+
+
+def _argmax(values: list[float]) -> int:
+    """``np.argmax(values)``: the first largest value's index, a NaN's if there is one."""
+    best = 0
+    for k, v in enumerate(values):
+        if v != v:  # NaN
+            return k
+        if v > values[best]:
+            best = k
+    return best
 
 
 def _with(locked: LockSet, k: int, value: bool) -> LockSet:

@@ -57,8 +57,9 @@ Latency (issue #11; ``dvt-bench model``): the two input streams are taken raw (C
 message object is built or converted per sample; the published messages are the ones rclpy
 would send. ``main`` freezes the objects built at start-up out of the garbage collector's full
 passes (tens of milliseconds with rclpy, numpy and scipy loaded). Per sample the callback then
-costs about 60 us of CPU, two thirds of it the model step (:meth:`HybridModel.step
-<dvt_model.hybrid.HybridModel.step>`); the detector about 2 us (its reference window's end,
+costs about 50 us of CPU (in process, median, on the shared 2-core development machine), about
+half of it the model step (:meth:`HybridModel.step <dvt_model.hybrid.HybridModel.step>`, about
+25 us); the detector about 2 us (its reference window's end,
 once per ``detector.learn_s``, about 2.5 ms).
 
 The guard: the predictor never publishes a non-finite or diverging prediction; it re-anchors

@@ -2,12 +2,19 @@
 
 The raw CDR of each message is published unchanged, so every ``header.stamp`` is the original
 one and the model node (or the identifier) sees exactly what was recorded. Messages are paced
-by their log times divided by ``--rate`` (``--rate 0``: as fast as possible).
+by their log times divided by ``--rate`` (``--rate 0``: as fast as possible). The
+``/dvt/joint_states`` messages carry the recorded ``position`` (encoder angles) when the bag has
+them, so the model node anchors its angles to the measured ones as it does live.
+
+``--start S`` skips the first ``S`` seconds of the bag (log time from its first message) and
+``--duration S`` stops after ``S`` seconds of it: a slice of a long recording, e.g. one phase
+of a validation run.
 
 Usage::
 
     dvt-replay BAG [--rate 1.0] [--topics /dvt/joint_states /dvt/currents]
-               [--wait-subscribers 1] [--wait-timeout 10] [--ros-args ...]
+               [--start 0] [--duration 0] [--wait-subscribers 1] [--wait-timeout 10]
+               [--ros-args ...]
 """
 
 from __future__ import annotations
@@ -49,10 +56,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wait-timeout", type=float, default=10.0)
     parser.add_argument("--start-delay", type=float, default=0.0,
                         help="seconds to wait after discovery before the first message")
+    parser.add_argument("--start", type=float, default=0.0,
+                        help="skip this many seconds of the bag (log time) [s]")
+    parser.add_argument("--duration", type=float, default=0.0,
+                        help="publish this many seconds of the bag from --start; 0: to its end")
     args = parser.parse_args(plain)
-    if args.rate < 0.0:
-        print(f"dvt-replay: --rate: expected >= 0, got {args.rate}", file=sys.stderr)
-        return 2
+    for name in ("rate", "start", "duration"):
+        value = getattr(args, name)
+        if not (value >= 0.0 and value < float("inf")):
+            print(f"dvt-replay: --{name}: expected a finite value >= 0, got {value}",
+                  file=sys.stderr)
+            return 2
     stop = {"flag": False}
     signal.signal(signal.SIGINT, lambda *_: stop.update(flag=True))
     signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
@@ -86,8 +100,17 @@ def main(argv: list[str] | None = None) -> int:
         sent = 0
         t0_wall = time.monotonic()
         t0_log: int | None = None
+        skip_ns = round(args.start * 1e9)
+        stop_ns = round((args.start + args.duration) * 1e9) if args.duration > 0.0 else None
+        first: int | None = None
         for conn, log_ns, raw in reader.messages(connections=conns):
             if stop["flag"]:
+                break
+            if first is None:
+                first = log_ns
+            if log_ns - first < skip_ns:
+                continue
+            if stop_ns is not None and log_ns - first >= stop_ns:
                 break
             if t0_log is None:
                 t0_log = log_ns

@@ -186,12 +186,16 @@ def test_node_publishes_the_predictor_residuals_and_detects_as_directly(params,
                                                                         model_node) -> None:
     node = model_node
     sent: list[bytes] = []
+    predicted: list[bytes] = []
     node.pub_res.publish = sent.append
-    t, im, ib, meas, _ = _stream(params, n=3000)
+    node.pub_pred.publish = predicted.append
+    t, im, ib, meas, theta = _stream(params, n=3000)
+    with_pos = np.arange(len(t)) >= 300  # positions measured from sample 300 (an anchor)
     for k in range(len(t)):
         stamp = T0 + k * 1_000_000
         cur = _msg(CURRENT_NAMES, effort=[im[k], *ib[k]], stamp=stamp)
-        js = _msg(SPEED_NAMES, velocity=meas[k], stamp=stamp)
+        js = _msg(SPEED_NAMES, velocity=meas[k], stamp=stamp,
+                  position=theta[k] if with_pos[k] else None)
         node._on_msg(cur, 1) if k % 2 else node._on_msg(js, 0)
         node._on_msg(js, 0) if k % 2 else node._on_msg(cur, 1)
     assert node.published == len(t) and node.bad_messages == 0
@@ -204,9 +208,18 @@ def test_node_publishes_the_predictor_residuals_and_detects_as_directly(params,
     settle_until = -float("inf")
     for k in range(len(t)):
         stamp = T0 + k * 1_000_000
-        pred = p.update(stamp * 1e-9, im[k], ib[k], meas[k])
+        pred = p.update(stamp * 1e-9, im[k], ib[k], meas[k], theta[k] if with_pos[k] else None)
         got = deserialize_message(sent[k], JointState)
+        out = deserialize_message(predicted[k], JointState)
         assert list(got.velocity) == pred.residual.tolist()
+        assert list(out.velocity) == pred.predicted.tolist()
+        if pred.position_residual is None:
+            assert len(got.position) == 0 and len(out.position) == 0
+        else:
+            assert list(got.position) == pred.position_residual.tolist()
+            assert list(out.position) == pred.predicted_position.tolist()
+        assert rosutil.stamp_to_ns(got.header.stamp) == stamp and list(got.name) == list(
+            SPEED_NAMES)
         ts = stamp * 1e-9
         if pred.anchored:
             det.reset()

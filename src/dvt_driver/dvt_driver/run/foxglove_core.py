@@ -632,16 +632,20 @@ def build_layout() -> dict[str, Any]:
                                  "diffMethod": "custom", "diffTopicPath": "",
                                  "showFullMessageForDiff": False, "expansion": "all"},
     }
-    left = {"first": {"first": "Plot!speeds", "second": "Plot!residual", "direction": "column",
-                      "splitPercentage": 50},
-            "second": {"first": "Plot!currents", "second": {
-                "first": "StateTransitions!gear", "second": "Plot!angles",
-                "direction": "column", "splitPercentage": 60},
-                "direction": "column", "splitPercentage": 45},
-            "direction": "column", "splitPercentage": 55}
+    # the gear timeline gets a quarter of the height: its seven rows (gear, commanded gear,
+    # shifting, three bands) need about 35 px each
+    left = {"first": "Plot!speeds", "second": {
+        "first": "Plot!residual", "second": {
+            "first": "Plot!currents", "second": "StateTransitions!gear", "direction": "column",
+            "splitPercentage": 40},
+        "direction": "column", "splitPercentage": 33},
+        "direction": "column", "splitPercentage": 30}
     right = {"first": "DiagnosticSummary!diag", "second": {
-        "first": "RosOut!alarms", "second": "RawMessages!identify", "direction": "column",
-        "splitPercentage": 50}, "direction": "column", "splitPercentage": 45}
+        "first": "Plot!angles", "second": {
+            "first": "RosOut!alarms", "second": "RawMessages!identify", "direction": "column",
+            "splitPercentage": 40},
+        "direction": "column", "splitPercentage": 40},
+        "direction": "column", "splitPercentage": 30}
     return {"configById": config, "globalVariables": {}, "userNodes": {},
             "playbackConfig": {"speed": 1},
             "layout": {"first": left, "second": right, "direction": "row",
