@@ -59,13 +59,17 @@ a bundled description (``descriptions/<name>.yaml``); the default name is ``dvt`
 
 from __future__ import annotations
 
+import copy
 import importlib
 import importlib.resources
+import math
 from collections import Counter
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from dvt_identify.data import Checks, SignalSpec
@@ -138,6 +142,77 @@ class Description:
     notes: tuple[str, ...] = ()
     text: str = ""
     model_effects: tuple[CandidateSpec, ...] = ()
+    prior_starts: tuple[dict[str, float], ...] = ()
+    """Further starts of the baseline fit (parameter name -> value; names absent: the initial
+    value): the initial values that :meth:`with_initial` replaced (e.g. the thesis prior when
+    the refit starts from the model in use)."""
+
+    def initial_values(self) -> dict[str, float]:
+        """The initial value of every structure and model-effect parameter, by name."""
+        return {p.name: float(p.initial) for p in [
+            *self.structure.params, *(q for e in self.make_model_effects() for q in e.params)]}
+
+    def with_initial(self, values: Mapping[str, Any], keep_prior: bool = True) -> Description:
+        """A copy whose structure and model-effect parameters start at ``values`` (name ->
+        number, e.g. ``{"M22": 0.03, "band_gain_ring1": 7.5}``; names not given keep theirs).
+
+        Args:
+            values: new initial values (the names :meth:`initial_values` lists).
+            keep_prior: keep the replaced initial values as a further start
+                (:attr:`prior_starts`, after those already kept).
+
+        Raises:
+            DescriptionError: an unknown name, a value that is not a finite number, or one
+                outside the parameter's bounds (each naming the parameter and the value).
+        """
+        specs = {p.name: p for p in self.structure.params}
+        where: dict[str, tuple[int, str]] = {}  # model-effect parameter -> (spec, base name)
+        for k, (c, eff) in enumerate(zip(self.model_effects, self.make_model_effects(),
+                                         strict=True)):
+            for p in eff.params:
+                specs[p.name] = p
+                where[p.name] = (k, p.name.removesuffix(f"_{c.where}"))
+        unknown = sorted(str(n) for n in values if n not in specs)
+        if unknown:
+            raise DescriptionError(f"{self.source}: initial values: unknown parameter(s) "
+                                   f"{unknown} (expected {sorted(specs)})")
+        new: dict[str, float] = {}
+        for name, v in values.items():
+            spec = specs[name]
+            if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer) \
+                    or not math.isfinite(float(v)):
+                raise DescriptionError(f"{self.source}: initial value of {name}: expected a "
+                                       f"finite number, got {v!r}")
+            if not spec.lower <= float(v) <= spec.upper:
+                raise DescriptionError(f"{self.source}: initial value of {name}: {float(v)!r} "
+                                       f"outside its bounds [{spec.lower:g}, {spec.upper:g}]")
+            new[name] = float(v)
+        prior = self.initial_values()
+        structure = copy.copy(self.structure)
+        structure.params = tuple(replace(p, initial=new.get(p.name, p.initial))
+                                 for p in self.structure.params)
+        effects = list(self.model_effects)
+        for name, v in new.items():
+            if name in where:
+                k, base = where[name]
+                c = effects[k]
+                init = dict(c.options.get("initial") or {})
+                init[base] = v
+                effects[k] = replace(c, options={**c.options, "initial": init})
+        starts = (*self.prior_starts, prior) if keep_prior and new else self.prior_starts
+        return replace(self, structure=structure, model_effects=tuple(effects),
+                       prior_starts=starts)
+
+    def start_values(self) -> list[np.ndarray]:
+        """Full start vectors of the baseline fit (structure parameters, then the model
+        effects'): the initial values, then each of :attr:`prior_starts` (clipped into the
+        bounds; a name no longer present, e.g. of a dropped band, is ignored)."""
+        specs = [*self.structure.params, *(q for e in self.make_model_effects() for q in e.params)]
+        out = [np.array([p.initial for p in specs], dtype=float)]
+        for prior in self.prior_starts:
+            out.append(np.array([min(max(float(prior.get(p.name, p.initial)), p.lower), p.upper)
+                                 for p in specs], dtype=float))
+        return out
 
     @property
     def input_names(self) -> tuple[str, ...]:

@@ -10,12 +10,14 @@ report. :func:`model_push` builds the model node's parameters from a result.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -153,7 +155,8 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         fit_decimate: int | None = None, quiet: bool = False, plots: bool = True,
         progress: Progress | None = None, test_bags: Sequence[str | Path] = (),
         select_on: str = "validation", init_window: int = 0, series: bool = True,
-        mcap: bool = False) -> IdentificationResult:
+        mcap: bool = False, initial: Mapping[str, float] | None = None
+        ) -> IdentificationResult:
     """The whole pipeline; returns the result after writing the report to ``out_dir`` (with
     its PNG plots unless ``plots`` is false).
 
@@ -177,9 +180,13 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         series: write ``series.npz`` and ``series/*.csv``
             (:func:`dvt_identify.series.write_series`).
         mcap: also write each segment's series as an MCAP bag with the model topics.
+        initial: start the baseline fit from these values (structure and model-effect
+            parameter name -> value, e.g. the model in use: :func:`model_initial`); the
+            description's own initial values are kept as a further start
+            (:meth:`Description.with_initial`, :meth:`Description.start_values`).
 
     Raises:
-        DvtIdentifyError: bad input (description, bags, data).
+        DvtIdentifyError: bad input (description, bags, data, ``initial``).
     """
     from dvt_identify import series as series_mod
 
@@ -191,6 +198,10 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
     t0 = time.monotonic()
     say = _quiet if quiet else (progress or stderr_progress)
     desc = load_description(description)
+    if initial:
+        desc = desc.with_initial(initial)
+        say("initial values: " + ", ".join(f"{k} {v:.6g}" for k, v in initial.items())
+            + " (the description's kept in prior_starts)")
     say(f"description {description_label(desc)}; reading {len(est_bags)} estimation and "
         f"{len(val_bags)} validation bag(s)")
     data_warnings: list[str] = []
@@ -247,6 +258,64 @@ def check_recording(est_bags: Sequence[str | Path], description: str | None = No
     data_warnings: list[str] = []
     est, _ = _read(est_bags, [], desc, data_warnings)
     return identifiability.check(desc, est), data_warnings
+
+
+def model_initial(desc: Description, values: Mapping[str, Any]) -> dict[str, float]:
+    """The description's initial values that the model node's parameter ``values`` (as
+    :func:`dvt_model.config.resolve` takes them; ``M``/``D`` empty: its parameter set's) set:
+    ``M11, M12, M22, D11, D12, D22`` from ``M``/``D`` (the inverse of :func:`model_push`) and
+    each band model effect's first parameter (``band_gain_ring1``, ``band_time_constant_brake1``
+    ...) from ``band_gain``/``band_time_constant`` of its band. Only the names the description
+    has are returned (none for a structure without ``M11..D22``).
+
+    Raises:
+        DvtModelError: ``values`` the model node would refuse.
+    """
+    from dvt_model.config import resolve
+
+    cfg = resolve(values)
+    M, D = np.asarray(cfg.rigid.M, float), np.asarray(cfg.rigid.D, float)
+    node = {"M11": M[0, 0], "M12": 0.5 * (M[0, 1] + M[1, 0]), "M22": M[1, 1],
+            "D11": D[0, 0], "D12": 0.5 * (D[0, 1] + D[1, 0]), "D22": D[1, 1]}
+    names = {p.name for p in desc.structure.params}
+    out = {k: float(v) for k, v in node.items() if k in names}
+    per_band = {"band_gain": np.asarray(cfg.brake.gains, float),
+                "band_time_constant": np.asarray(cfg.brake.time_constants, float)}
+    inputs = desc.input_names
+    for eff in desc.make_model_effects():
+        key = eff.band_parameter
+        if key not in per_band or not eff.params or not 0 <= eff.index < len(inputs):
+            continue
+        name = inputs[eff.index]
+        if name in ("brake1", "brake2", "brake3"):
+            v = float(per_band[key][int(name[-1]) - 1])
+            out[eff.params[0].name] = v
+    specs = {p.name: p for p in [*desc.structure.params,
+                                 *(q for e in desc.make_model_effects() for q in e.params)]}
+    return {k: v for k, v in out.items()
+            if math.isfinite(v) and specs[k].lower <= v <= specs[k].upper}
+
+
+def structure_at_bounds(result: IdentificationResult, stage: str = "final") -> list[str]:
+    """The structure parameters of a stage's optimum (``final`` or ``baseline``) that sit at a
+    bound their start (the description's initial value) was not at, as ``"M22 = 1e-06 at its
+    lower bound 1e-06"`` (:meth:`dvt_identify.fit.OEFit.bounds_hit`)."""
+    fit = (result.final if stage == "final" else result.baseline).fit
+    model = fit.model
+    out = []
+    for name, _ in fit.bounds_hit(fit.theta_):
+        i = model.names.index(name)
+        if i >= model.n_struct:
+            continue
+        spec = model.specs[i]
+        v = float(fit.theta_[i])
+        lower = math.isfinite(spec.lower) and (not math.isfinite(spec.upper)
+                                               or abs(v - spec.lower) <= abs(v - spec.upper))
+        bound = spec.lower if lower else spec.upper
+        if spec.initial == bound:
+            continue
+        out.append(f"{name} = {v:.6g} at its {'lower' if lower else 'upper'} bound {bound:g}")
+    return out
 
 
 def model_push(result: IdentificationResult) -> Push:

@@ -8,6 +8,7 @@ States (:class:`State`)::
 
     idle --alarm--> waiting --min_post_change_s of data--> refitting --fit_done--> (deciding)
       (deciding) --new not significantly better--> idle               [outcome "not_better"]
+      (deciding) --better, but its structure at a bound--> idle        [outcome "suspect"]
       (deciding) --better--> pushing --push_done(ok)--> watching --watch_s--> idle [confirmed]
                                                          watching --worse--> rolling_back
       rolling_back --rollback_done--> idle                              [outcome "rolled_back"]
@@ -25,7 +26,11 @@ States (:class:`State`)::
 * **deciding**: push only if the new model's validation error beats the current one's on the
   same slice: Diebold-Mariano (:func:`dvt_identify.uncertainty.diebold_mariano`, HAC variance,
   per-output weights ``1 / mean square of the current model's error``) one-sided p-value below
-  ``alpha`` and relative loss reduction at least ``min_relative_gain``.
+  ``alpha`` and relative loss reduction at least ``min_relative_gain``. A new model whose
+  structure parameters ended at a bound their start was not at (``summary
+  ["structure_at_bounds"]``, e.g. M22 at its lower bound 1e-6: a degenerate optimum the data do
+  not determine) is not pushed - outcome ``suspect`` - unless its relative loss reduction is
+  at least ``suspect_min_relative_gain`` (0.5: it halves the weighted held-out loss).
 * **pushing**: :class:`Push` (the new parameters); the caller pushes and calls
   :meth:`~Supervisor.push_done`.
 * **watching**: for ``watch_s`` after the push (ignoring the first ``watch_settle_s``), the live
@@ -85,6 +90,7 @@ class SupervisorConfig:
     max_estimation_s: float = 300.0
     alpha: float = 0.05
     min_relative_gain: float = 0.1
+    suspect_min_relative_gain: float = 0.5
     fit_timeout_s: float = 600.0
     push_timeout_s: float = 10.0
     watch_s: float = 60.0
@@ -111,7 +117,8 @@ class SupervisorConfig:
         for name in ("min_post_change_s", "validation_s", "max_estimation_s", "fit_timeout_s",
                      "push_timeout_s", "watch_s", "baseline_s"):
             need(name, num(name) > 0, "a time > 0 s")
-        for name in ("settle_s", "watch_settle_s", "min_relative_gain", "rollback_tolerance"):
+        for name in ("settle_s", "watch_settle_s", "min_relative_gain", "rollback_tolerance",
+                     "suspect_min_relative_gain"):
             need(name, num(name) >= 0, "a number >= 0")
         need("alpha", 0 < num("alpha") < 1, "a significance level in (0, 1)")
         need("min_post_change_s", self.min_post_change_s > self.settle_s + self.validation_s,
@@ -192,8 +199,10 @@ class FitOutcome:
     ``new_errors`` and ``current_errors``: (N, ny) simulated output errors [rad/s] of the new
     and the current model on the validation window (same samples); ``new_parameters`` /
     ``current_parameters``: what :class:`Push` / :class:`Rollback` carry; ``summary``: what the
-    refit found (changed effects/parameters, fit figures) for the report; ``error``: non-empty if
-    the fit failed (then the arrays may be empty).
+    refit found (changed effects/parameters, fit figures) for the report - its
+    ``structure_at_bounds`` (a list of ``"M22 = 1e-06 at its lower bound 1e-06"``) makes the
+    supervisor refuse the push unless it is clearly better (``suspect_min_relative_gain``);
+    ``error``: non-empty if the fit failed (then the arrays may be empty).
     """
 
     new_errors: ArrayLike = ()
@@ -431,14 +440,25 @@ class Supervisor:
                       "alpha": self.config.alpha}
         better = cmp.p_value < self.config.alpha and \
             cmp.relative_gain >= self.config.min_relative_gain
+        at_bound = [str(x) for x in outcome.summary.get("structure_at_bounds") or []]
+        bound_note = f"; structure at a bound: {'; '.join(at_bound)}" if at_bound else ""
         if not better:
             return self._finish(now_s, "not_better",
                                 f"new model not significantly better on validation (p = "
-                                f"{cmp.p_value:.3g}, relative gain {cmp.relative_gain:.3g})")
+                                f"{cmp.p_value:.3g}, relative gain {cmp.relative_gain:.3g})"
+                                + bound_note)
+        if at_bound and cmp.relative_gain < self.config.suspect_min_relative_gain:
+            return self._finish(now_s, "suspect",
+                                f"new model better on validation (p = {cmp.p_value:.3g}, "
+                                f"relative gain {cmp.relative_gain:.3g}) but not pushed: its "
+                                f"structure ended at a bound ({'; '.join(at_bound)}) and the "
+                                f"gain is below suspect_min_relative_gain "
+                                f"{self.config.suspect_min_relative_gain:g}", 1)
         self._fit = outcome
         return [self._step(now_s, State.PUSHING,
                            f"new model better on validation (p = {cmp.p_value:.3g}, relative "
-                           f"gain {cmp.relative_gain:.3g}); pushing", p_value=cmp.p_value),
+                           f"gain {cmp.relative_gain:.3g}){bound_note}; pushing",
+                           p_value=cmp.p_value),
                 Push(ep["episode"], dict(outcome.new_parameters))]
 
     def push_done(self, ok: bool, now_s: float, error: str = "") -> list[Action]:
@@ -536,13 +556,16 @@ class RefitSettings:
     """How the node's worker refits an episode's window (the CLI's identification, bounded):
     ``description`` (bundled name or YAML), ``augment`` (the residual-tracing loop), ``starts``
     (multi-start count, ``None``: the description's), ``fit_decimate`` (``None``: the
-    description's), ``plots`` (PNG plots in the episode's report)."""
+    description's), ``plots`` (PNG plots in the episode's report), ``from_model`` (start the
+    baseline fit from the model in use, :func:`dvt_identify.pipeline.model_initial`; the
+    description's initial values stay a further start)."""
 
     description: str = "dvt"
     augment: bool = True
     starts: int | None = 1
     fit_decimate: int | None = None
     plots: bool = False
+    from_model: bool = True
 
 
 MIN_WINDOW_SAMPLES = 100
@@ -610,17 +633,22 @@ def refit(snapshot: str | Path, request: RequestFit, current: Mapping[str, Any],
 
     Reads the snapshot bag, splits it by stamp into the estimation part
     ``[request.estimation)`` and the validation part ``[request.validation]`` (written as two
-    bags under ``work_dir``), runs the identification pipeline on them (as ``dvt-identify``,
-    report in ``work_dir/report``), builds the model-node push and simulates the model in use
-    (``current``: the model node's parameter values) and the new one (``current`` with the push
-    applied) on the validation part with the node's own predictor.
+    bags under ``work_dir``, with the recorded angles when the snapshot has them), runs the
+    identification pipeline on them (as ``dvt-identify``, report in ``work_dir/report``; the
+    baseline fit starts from the model in use when ``settings.from_model``), builds the
+    model-node push and simulates the model in use (``current``: the model node's parameter
+    values) and the new one (``current`` with the push applied) on the validation part with the
+    node's own predictor. The summary's ``structure_at_bounds`` lists the new model's structure
+    parameters at a bound (:func:`dvt_identify.pipeline.structure_at_bounds`), ``suspect`` the
+    fits' own flags (``OEFit.suspect_``).
 
     Returns:
         The :class:`FitOutcome` for :meth:`Supervisor.fit_done` (``error`` set, naming the
         problem, when the data or the fit are unusable).
     """
+    from dvt_identify.description import load_description
     from dvt_identify.errors import DvtIdentifyError
-    from dvt_identify.pipeline import model_push
+    from dvt_identify.pipeline import model_initial, model_push, structure_at_bounds
     from dvt_identify.pipeline import run as run_pipeline
     from dvt_model.errors import DvtModelError
     from dvt_model.recording import read_run, write_run
@@ -640,13 +668,28 @@ def refit(snapshot: str | Path, request: RequestFit, current: Mapping[str, Any],
                 f"snapshot {snapshot}: {int(est.sum())} estimation and {int(val.sum())} "
                 f"validation samples in [{e0:.3f}, {e1:.3f}] / [{v0:.3f}, {v1:.3f}] s "
                 f"(need >= {MIN_WINDOW_SAMPLES} each; {data.n} samples in the snapshot)"))
+        pos = data.positions
+        summary["angles"] = "recorded position" if pos is not None else \
+            "none recorded (integrated speeds)"
         est_bag = write_run(work / "estimation", data.stamps_ns[est], data.speeds[est],
-                            data.currents[est])
+                            data.currents[est], positions=None if pos is None else pos[est])
         val_bag = write_run(work / "validation", data.stamps_ns[val], data.speeds[val],
-                            data.currents[val])
+                            data.currents[val], positions=None if pos is None else pos[val])
+        cur = {k: plain_value(v) for k, v in current.items()}
+        initial: dict[str, float] | None = None
+        if s.from_model:
+            try:
+                initial = model_initial(load_description(s.description), cur)
+                summary["initial"] = {"from": "the model in use", "values": initial}
+            except DvtModelError as exc:  # the description's initial values only
+                summary["initial"] = {"from": "the description", "error": str(exc)}
         result = run_pipeline([est_bag], [val_bag], work / "report",
                               description=s.description, augment=s.augment, starts=s.starts,
-                              fit_decimate=s.fit_decimate, quiet=True, plots=s.plots)
+                              fit_decimate=s.fit_decimate, quiet=True, plots=s.plots,
+                              initial=initial)
+        summary["suspect"] = {"baseline": list(result.baseline.fit.suspect_),
+                              "final": list(result.final.fit.suspect_)}
+        summary["structure_at_bounds"] = structure_at_bounds(result)
         summary["baseline_fit_percent"] = dict(zip(
             result.baseline.val.output_names, result.baseline.val.fit_percent, strict=True))
         summary["final_fit_percent"] = dict(zip(
@@ -654,7 +697,6 @@ def refit(snapshot: str | Path, request: RequestFit, current: Mapping[str, Any],
         summary["accepted"] = [d.score.label for d in result.accepted]
         push = model_push(result)
         summary["not_pushed"] = push.skipped
-        cur = {k: plain_value(v) for k, v in current.items()}
         new = {**cur, **push.parameters}
         summary["changed"] = _changes(cur, push.parameters)
         cur_err = validation_errors(cur, data.stamps_ns[val], data.speeds[val],
@@ -686,6 +728,8 @@ def episode_markdown(record: Mapping[str, Any]) -> str:
              "alarm(s))",
              f"* estimation {record.get('estimation')}, validation {record.get('validation')}",
              f"* accepted effects: {', '.join(refit_.get('accepted') or []) or 'none'}",
+             "* structure at a bound: " + ("; ".join(refit_.get("structure_at_bounds") or [])
+                                          or "none"),
              "* changed parameters: " + (", ".join(
                  str(c.get("parameter")) for c in refit_.get("changed") or []) or "none"),
              f"* validation RMS before [rad/s]: {fmt(record.get('error_before'))}",

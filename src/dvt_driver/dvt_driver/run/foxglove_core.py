@@ -632,14 +632,14 @@ def build_layout() -> dict[str, Any]:
                                  "diffMethod": "custom", "diffTopicPath": "",
                                  "showFullMessageForDiff": False, "expansion": "all"},
     }
-    # the gear timeline gets a quarter of the height: its seven rows (gear, commanded gear,
-    # shifting, three bands) need about 35 px each
+    # the gear timeline gets almost 40 % of the height: its six rows (gear, commanded gear,
+    # shifting, three bands) take about 55 px each
     left = {"first": "Plot!speeds", "second": {
         "first": "Plot!residual", "second": {
             "first": "Plot!currents", "second": "StateTransitions!gear", "direction": "column",
-            "splitPercentage": 40},
-        "direction": "column", "splitPercentage": 33},
-        "direction": "column", "splitPercentage": 30}
+            "splitPercentage": 30},
+        "direction": "column", "splitPercentage": 28},
+        "direction": "column", "splitPercentage": 25}
     right = {"first": "DiagnosticSummary!diag", "second": {
         "first": "Plot!angles", "second": {
             "first": "RosOut!alarms", "second": "RawMessages!identify", "direction": "column",

@@ -86,7 +86,9 @@ class Run:
     ``stamps_ns`` (N,) int64 sample stamps [ns]; ``t`` (N,) seconds since the first stamp;
     ``speeds`` (N, 2) [rad/s] of ``SPEED_NAMES``; ``currents`` (N, 4) [A] of ``CURRENT_NAMES``;
     ``topics`` every topic present in the bag; ``unmatched`` samples dropped because their stamp
-    was present in only one of the two topics (``unmatched_by_topic`` per topic).
+    was present in only one of the two topics (``unmatched_by_topic`` per topic);
+    ``positions`` (N, 2) the recorded angles [rad] of ``SPEED_NAMES`` (``position`` of
+    ``/dvt/joint_states``), or ``None`` when the recording has none (or a non-finite one).
     """
 
     path: Path
@@ -97,6 +99,7 @@ class Run:
     topics: tuple[str, ...]
     unmatched: int = 0
     unmatched_by_topic: dict[str, int] = field(default_factory=dict)
+    positions: Float2D | None = None
 
     @property
     def n(self) -> int:
@@ -431,9 +434,11 @@ def read_run(path: str | Path, *, salvage: bool = False) -> Run:
     ia, ib = pairing.index[JOINT_STATES], pairing.index[CURRENTS]
     stamps = js.stamps_ns[ia].astype(np.int64)
     t = (stamps - stamps[0]).astype(np.float64) * 1e-9
+    pos = js.position[ia] if js.position.shape[1] == len(SPEED_NAMES) else None
     return Run(path=path, stamps_ns=stamps, t=t, speeds=speeds[ia], currents=currents[ib],
                topics=topics, unmatched=sum(pairing.unmatched.values()),
-               unmatched_by_topic=dict(pairing.unmatched))
+               unmatched_by_topic=dict(pairing.unmatched),
+               positions=pos if pos is not None and np.isfinite(pos).all() else None)
 
 
 def sample_period(run: Run) -> float:
