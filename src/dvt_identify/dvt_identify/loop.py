@@ -602,10 +602,10 @@ def sensitivities(fit: OEFit, segments: Sequence[Segment], rel_step: float = 1e-
 
 
 def _struct_guesses(fit_segments: Sequence[Segment], desc: Description) -> list[Array]:
-    phys = np.array([p.initial for p in desc.structure.params]
-                    + [p.initial for e in desc.make_model_effects() for p in e.params],
-                    dtype=float)
-    return [phys]
+    """Structure starts of the baseline fit: the description's initial values (the physics
+    prior, or the model in use when the supervisor refits), then each earlier prior
+    (:meth:`Description.start_values`)."""
+    return [np.asarray(v, dtype=float) for v in desc.start_values()]
 
 
 def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,

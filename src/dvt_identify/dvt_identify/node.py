@@ -26,6 +26,7 @@ services, every step on ``/diagnostics`` (``dvt_identify: supervisor``), and per
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import queue
@@ -243,6 +244,8 @@ class IdentifyNode(Node):
             values[name] = declare(name, default, f"supervisor {name} (docs/loop.md §3)")
         starts = declare("starts", 1, "multi-start count of the refit (0: the description's)")
         decim = declare("fit_decimate", 0, "decimation of the refit (0: the description's)")
+        from_model = declare("from_model", True, "the refit starts from the model in use (then "
+                             "from the description's prior); false: the prior only")
         timeout = declare("snapshot_timeout_s", 60.0, "seconds after the window's end to wait "
                           "for the recorder's snapshot")
         lag = declare("max_data_lag_s", 30.0, "the supervisor's clock is the newest residual "
@@ -250,6 +253,8 @@ class IdentifyNode(Node):
         for name, v in (("starts", starts), ("fit_decimate", decim)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise SupervisorError(f"{p}.{name}: expected an integer >= 0, got {v!r}")
+        if not isinstance(from_model, bool):
+            raise SupervisorError(f"{p}.from_model: expected true or false, got {from_model!r}")
         if isinstance(timeout, bool) or not isinstance(timeout, int | float) \
                 or not (math.isfinite(timeout) and timeout > 0):
             raise SupervisorError(f"{p}.snapshot_timeout_s: expected a time > 0 s, got "
@@ -268,7 +273,8 @@ class IdentifyNode(Node):
         self.refit_settings = sv.RefitSettings(
             description=str(self.get_parameter("description").value),
             augment=bool(self.get_parameter("augment").value),
-            starts=int(starts) or None, fit_decimate=int(decim) or None)
+            starts=int(starts) or None, fit_decimate=int(decim) or None,
+            from_model=from_model)
         if not enabled:
             return
         self.supervisor = sv.Supervisor(config)
@@ -449,9 +455,7 @@ class IdentifyNode(Node):
             outcome = sv.FitOutcome(error=f"{type(exc).__name__}: {exc}")
         seconds = time.monotonic() - t0
         summary = {**outcome.summary, "refit_seconds": seconds}
-        result = sv.FitOutcome(outcome.new_errors, outcome.current_errors,
-                               outcome.new_parameters, outcome.current_parameters, summary,
-                               outcome.error)
+        result = dataclasses.replace(outcome, summary=summary)
         sup = self._require_supervisor()
         self._done.put(lambda now: sup.fit_done(result, now))
 
