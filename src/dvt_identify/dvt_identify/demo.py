@@ -266,7 +266,7 @@ def closed_loop(out: Path, hidden: str = "coulomb") -> dict[str, Any]:
             "before", f"residual before (RMS {rms0[j]:.2f} rad/s)"))
         ax2.plot(t1, r1[:, j], **style.residual(
             "after", f"residual after (RMS {rms1[j]:.2f} rad/s)"))
-        ax2.set_ylabel(style.label(f"{names[j]} measured - predicted", "rad/s"))
+        ax2.set_ylabel(style.label(f"{names[j]} residual", "rad/s"))
         style.legend_outside(ax2)
     axes[-1].set_xlabel(style.label("time", "s"))
     fig.suptitle(f"Closed loop on the simulated plant (hidden: {hidden}): live residual "
