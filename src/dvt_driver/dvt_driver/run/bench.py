@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import shutil
 import signal
@@ -262,6 +261,16 @@ def run(rate: float, seconds: float, hidden: str = "none", keep: Path | None = N
     return result
 
 
+def print_results(res: dict[str, Any], as_json: bool, width: int) -> None:
+    """A benchmark's figures on stdout: one JSON line, or ``name value`` rows (names padded to
+    ``width`` characters)."""
+    if as_json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:{width}s} {v}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``dvt-bench link`` (argv without the ``link`` word); returns the exit status."""
     p = argparse.ArgumentParser(prog="dvt-bench link",
@@ -285,11 +294,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LaunchError as exc:
         print(f"dvt-bench link: error: {exc}", file=sys.stderr)
         return 1
-    if args.json:
-        print(json.dumps(res))
-    else:
-        for k, v in res.items():
-            print(f"{k:24s} {v}")
+    print_results(res, args.json, 24)
     return 0
 
 
@@ -302,7 +307,7 @@ LOOP_DOC = """``dvt-bench loop``: plant -> driver -> model node with its change 
 injected into the running plant; detection delay, false alarms, the model node's latency.
 
     dvt-bench loop [--clean-seconds 60] [--after-seconds 15] [--change coulomb]
-                   [--current 4.0] [--learn-s 20] [--with-identifier] [--json] [--keep DIR]
+                   [--current 4.0] [--learn-s 20] [--json] [--keep DIR]
 
 Starts ``dvt-plant`` (clean, ``--change-file``), ``dvt_driver_node`` (autostart) and
 ``dvt_model_node`` (detector on, ``detector.learn_s``), drives the motor at ``--current`` A,
@@ -323,11 +328,9 @@ Prints (JSON with ``--json``)::
   ``false_alarms_per_hour`` their rate and ``false_alarms_per_hour_upper95`` its one-sided 95 %
   Poisson bound. A clean segment of a minute cannot show a mean time between false alarms of
   hours: the figure that does is the detector's offline one (``docs/loop.md`` section 1);
-* ``restored_s``: time from the change until the model node's residual RMS (its 1-s diagnostics)
-  is back within 20 % of its clean level after a change of the model's parameters (a push: the
-  detector's ``resets`` counter moves). That needs the identifier's supervisor: with
-  ``--with-identifier`` the bench also starts ``dvt_identify_node`` (``supervisor.enabled:=true``)
-  and a rolling ``dvt-recorder``; without it ``restored_s`` is null (``restored_note`` says why);
+* ``restored_s``: null here (``restored_note`` says why): the time from the change to a
+  restored residual needs the identifier's supervisor, which ``dvt-bench loop
+  --with-identifier`` runs through ``dvt-launch --supervise`` (:mod:`dvt_driver.run.bench_loop`);
 * ``model_latency_ms``: per sample, reception of the model node's residual minus reception of
   the driver's ``/dvt/joint_states`` with the same stamp, both in this process (the node's
   processing plus one DDS hop), with the detector on; ``model_dropped``: samples published by the
@@ -437,7 +440,7 @@ def _rms_of(values: dict[str, str]) -> float | None:
 
 
 def run_loop(clean_seconds: float = 60.0, after_seconds: float = 15.0, change: str = "coulomb",
-             current: float = 4.0, learn_s: float = 20.0, with_identifier: bool = False,
+             current: float = 4.0, learn_s: float = 20.0,
              keep: Path | None = None, log: Any = None) -> dict[str, Any]:
     """Run the loop benchmark; returns the figures (see :data:`LOOP_DOC`)."""
     from dvt_driver.plant.hidden import changes_from_spec
@@ -486,12 +489,6 @@ def run_loop(clean_seconds: float = 60.0, after_seconds: float = 15.0, change: s
         model = kids.start("model", [script("dvt_model_node"), "--ros-args",
                                      "-p", "params:=physical",
                                      "-p", f"detector.learn_s:={learn_s:g}"])
-        if with_identifier:
-            kids.start("ring", [script("dvt-recorder"), "--ros-args", "-r",
-                                "__node:=dvt_recorder_ring", "-p", f"output:={work / 'ring'}",
-                                "-p", "ring_minutes:=5.0", "-p", "ring_segment_seconds:=5.0"])
-            kids.start("identify", [script("dvt_identify_node"), "--ros-args",
-                                    "-p", "supervisor.enabled:=true"])
 
         def testing() -> bool:
             ln.spin(0.2)
@@ -514,8 +511,6 @@ def run_loop(clean_seconds: float = 60.0, after_seconds: float = 15.0, change: s
         node.spin(after_seconds)
         node.timing = False
         cpu1, wall1 = _cpu_seconds(model.proc.pid), time.monotonic()
-        if with_identifier:
-            node.spin(max(0.0, 180.0 - after_seconds))  # wait, refit, push, watch
         clean_s = max(0.0, change_unix - clean_from)
         false_alarms = [a for a in node.alarms if a["stamp_s"] < change_unix]
         after = [a for a in node.alarms if a["stamp_s"] >= change_unix]
@@ -525,22 +520,8 @@ def run_loop(clean_seconds: float = 60.0, after_seconds: float = 15.0, change: s
         pre = [r for t, v in node.model if clean_from <= t < change_unix
                if (r := _rms_of(v)) is not None]
         restored: float | None = None
-        note = ("needs the identifier's supervisor (refit and push after the alarm): run with "
-                "--with-identifier once dvt_identify_node runs it")
-        if with_identifier:
-            base = float(np.median(pre)) if pre else math.nan
-            resets0 = next((int(v.get("resets", "0")) for t, v in node.detector
-                            if t < change_unix), 0)
-            pushed_at = next((t for t, v in node.detector
-                              if t > change_unix and int(v.get("resets", "0")) > resets0), None)
-            note = "no push of the model's parameters seen after the change"
-            if pushed_at is not None:
-                note = "pushed; the residual did not come back within 20 % of its clean level"
-                for t, v in node.model:
-                    r = _rms_of(v)
-                    if t > pushed_at and r is not None and r <= 1.2 * base:
-                        restored, note = round(t - change_unix, 3), "restored"
-                        break
+        note = ("the time to a restored residual needs the identifier's supervisor: "
+                "dvt-bench loop --with-identifier (dvt_driver.run.bench_loop)")
         first = after[0] if after else None
         poisson95 = 2.9957  # one-sided 95 % upper bound of a Poisson mean after 0 events
         hours = clean_s / 3600.0
@@ -596,7 +577,10 @@ def _chi2_upper(n: int) -> float:
 
 def loop_main(argv: Sequence[str] | None = None) -> int:
     """``dvt-bench loop`` (argv without the ``loop`` word); returns the exit status."""
-    p = argparse.ArgumentParser(prog="dvt-bench loop", description=LOOP_DOC.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="dvt-bench loop", description=LOOP_DOC.split("\n\n")[0],
+        epilog="dvt-bench loop --with-identifier [--help]: the whole loop through dvt-launch "
+               "--supervise, with the time to a restored residual (dvt_driver.run.bench_loop)")
     p.add_argument("--clean-seconds", type=float, default=60.0,
                    help="testing on the clean plant before the change [s] (60)")
     p.add_argument("--after-seconds", type=float, default=15.0,
@@ -606,9 +590,6 @@ def loop_main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--current", type=float, default=4.0, help="motor current [A] (4)")
     p.add_argument("--learn-s", type=float, default=20.0,
                    help="the detector's reference window [s] (20)")
-    p.add_argument("--with-identifier", action="store_true",
-                   help="also run dvt_identify_node (supervisor) and a rolling recorder; "
-                        "measures the time to a restored residual")
     p.add_argument("--keep", default=None, help="copy the logs and truth to this new directory")
     p.add_argument("--json", action="store_true", help="print JSON only")
     args = p.parse_args(list(sys.argv[1:] if argv is None else argv))
@@ -619,17 +600,13 @@ def loop_main(argv: Sequence[str] | None = None) -> int:
         p.error(f"--keep: {args.keep} already exists")
     try:
         res = run_loop(args.clean_seconds, args.after_seconds, args.change, args.current,
-                       args.learn_s, args.with_identifier,
+                       args.learn_s,
                        Path(args.keep) if args.keep else None,
                        log=None if args.json else sys.stderr)
     except (LaunchError, DvtDriverError) as exc:
         print(f"dvt-bench loop: error: {exc}", file=sys.stderr)
         return 1
-    if args.json:
-        print(json.dumps(res))
-    else:
-        for k, v in res.items():
-            print(f"{k:32s} {v}")
+    print_results(res, args.json, 32)
     return 0
 
 

@@ -353,7 +353,7 @@ def run_with_identifier(rate: float = 250.0, change_at: float = 50.0,
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``dvt-bench loop`` (argv without the ``loop`` word); returns the exit status."""
-    from dvt_driver.run.bench import loop_main
+    from dvt_driver.run.bench import loop_main, print_results
 
     args_in = list(sys.argv[1:] if argv is None else argv)
     if "--with-identifier" not in args_in:
@@ -385,11 +385,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, RuntimeError) as exc:
         print(f"dvt-bench loop: error: {exc}", file=sys.stderr)
         return 1
-    if a.json:
-        print(json.dumps(res))
-    else:
-        for k, v in res.items():
-            print(f"{k:32s} {v}")
+    print_results(res, a.json, 32)
     return 0
 
 
