@@ -32,24 +32,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
-from rcl_interfaces.srv import GetParameters
-from rclpy.executors import SingleThreadedExecutor
-from sensor_msgs.msg import JointState
+from model_listener import ModelListener
 from std_msgs.msg import String
 
-from conftest import wait_for
 from dvt_driver.plant.hidden import load_hidden
 from dvt_driver.plant.offline import record_offline
 from dvt_driver.run.experiment_core import build
-from dvt_model import rosutil
-from dvt_model.contract import (
-    IDENTIFY_REQUEST,
-    IDENTIFY_RESULT,
-    MODEL_JOINT_STATES,
-    MODEL_NODE,
-    MODEL_RESIDUAL,
-)
+from dvt_model.contract import IDENTIFY_REQUEST, MODEL_RESIDUAL
 from dvt_model.params import load_parameters
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -62,69 +51,12 @@ SKIP = 200
 """Samples after the replay's first (the anchor) left out of the RMS."""
 
 
-class _Listener:
-    """The model node's residual and prediction, speeds and angles."""
-
-    def __init__(self, ctx: object) -> None:
-        self.node = rclpy.create_node("test_angles", context=ctx)
-        self.exe = SingleThreadedExecutor(context=ctx)
-        self.exe.add_node(self.node)
-        self.residual: list[tuple[list[float], list[float]]] = []
-        self.predicted: list[list[float]] = []
-        self.results: list[dict] = []
-        self.node.create_subscription(JointState, MODEL_RESIDUAL, self._res, rosutil.SENSOR_QOS)
-        self.node.create_subscription(JointState, MODEL_JOINT_STATES, self._pred,
-                                      rosutil.SENSOR_QOS)
-        self.node.create_subscription(String, IDENTIFY_RESULT,
-                                      lambda m: self.results.append(json.loads(m.data)),
-                                      rosutil.LATCHED_QOS)
-
-    def _res(self, msg: JointState) -> None:
-        self.residual.append((list(msg.velocity), list(msg.position)))
-
-    def _pred(self, msg: JointState) -> None:
-        self.predicted.append(list(msg.position))
-
-    def spin_until(self, pred, timeout: float, what: str):
-        def check():
-            self.exe.spin_once(timeout_sec=0.02)
-            return pred()
-        return wait_for(check, timeout, what, interval=0.0)
-
-    def spin_for(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.exe.spin_once(timeout_sec=0.02)
-
-    def get(self, names: list[str]):
-        cli = self.node.create_client(GetParameters, f"/{MODEL_NODE}/get_parameters")
-        self.spin_until(cli.service_is_ready, 10.0, "get_parameters service")
-        fut = cli.call_async(GetParameters.Request(names=names))
-        self.spin_until(fut.done, 20.0, "get_parameters")
-        return fut.result().values
-
-
-def _replay(listener: _Listener, procs, bag: Path) -> tuple[np.ndarray, np.ndarray]:
+def _replay(listener: ModelListener, procs, bag: Path) -> tuple[np.ndarray, np.ndarray]:
     """Replay ``WINDOW`` of ``bag`` into the model node; RMS of the live speed residual
     [rad/s] and angle residual [rad] per joint (sun, carrier 3)."""
-    listener.residual.clear()
-    listener.predicted.clear()
-    start, duration = WINDOW
-    replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1",
-                         "--start", str(start), "--duration", str(duration))
-    listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")
-    assert replay.returncode == 0, procs.log(replay)
-    listener.spin_for(0.5)
-    got = len(listener.residual)
-    # best-effort transport on a loaded machine may drop some; most must arrive
-    assert got > 0.8 * duration * 1000, got
-    # positions travel: every residual carries the angle residual, every prediction angles
-    assert all(len(p) == 2 for _, p in listener.residual), "residual without positions"
-    assert all(len(p) == 2 for p in listener.predicted), "prediction without positions"
-    speed = np.array([v for v, _ in listener.residual])[SKIP:]
-    angle = np.array([p for _, p in listener.residual])[SKIP:]
-    assert np.all(np.isfinite(speed)) and np.all(np.isfinite(angle))
-    return np.sqrt(np.mean(speed**2, axis=0)), np.sqrt(np.mean(angle**2, axis=0))
+    speed, angle = listener.replay(procs, bag, WINDOW, SKIP)
+    assert angle is not None
+    return speed, angle
 
 
 def test_angles_flow_from_plant_to_live_model(procs, rclpy_context, tmp_path: Path) -> None:
@@ -135,7 +67,7 @@ def test_angles_flow_from_plant_to_live_model(procs, rclpy_context, tmp_path: Pa
                          load_hidden(PRESET), seed=31)
     val = record_offline(tmp_path / "val", build("ident", seed=121), params,
                          load_hidden(PRESET), seed=131)
-    listener = _Listener(rclpy_context)
+    listener = ModelListener(rclpy_context, "test_angles")
     model = procs.start("dvt_model_node", "--ros-args", "-p", "params:=physical",
                         "-p", "detector.enabled:=false")
     ident = procs.start("dvt_identify_node", "--ros-args",

@@ -3,45 +3,24 @@
 Estimation data: the committed recordings in ``bags/`` (made by the real chain: plant on a pty
 -> driver -> recorder). Validation data: the same plant (its hidden effects read from the
 recording's ``truth.yaml`` - only tests read it, never the identifier) driven offline through the
-driver's supervisor with another experiment seed and noise seed. One augmentation round: the
-first-ranked candidates are refitted and the best passing one accepted.
+driver's supervisor with another experiment seed and noise seed (:mod:`recorded`). One
+augmentation round: the first-ranked candidates are refitted and the best passing one accepted.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
-import yaml
+from recorded import identify_recorded
 
-from dvt_driver.plant.hidden import parse_hidden
-from dvt_driver.plant.offline import record_offline
-from dvt_driver.run.experiment_core import build
-from dvt_identify import identifiability
-from dvt_identify.description import load_description
-from dvt_identify.loop import IdentificationResult, LoopConfig, identify
-from dvt_identify.pipeline import load_segments
-from dvt_model.params import load_parameters
+from dvt_identify.loop import IdentificationResult
 
 pytestmark = pytest.mark.slow
-BAGS = Path(__file__).resolve().parents[1] / "bags"
 
 
 def _identify(name: str, tmp_path: Path) -> IdentificationResult:
-    bag = BAGS / name
-    truth = yaml.safe_load((bag / "truth.yaml").read_text())
-    made = yaml.safe_load((bag / "run.yaml").read_text())
-    experiment = build(made["experiment"]["name"], seed=int(made["experiment"]["seed"]) + 100)
-    val = record_offline(tmp_path / "val", experiment, load_parameters(truth["plant"]["params"]),
-                         parse_hidden(truth["hidden"]), seed=int(truth["plant"]["seed"]) + 100)
-    desc = load_description("dvt")
-    est = load_segments([bag], desc)
-    vals = load_segments([val], desc)
-    chk = identifiability.check(desc, est)
-    desc = identifiability.apply(desc, chk)
-    cfg = replace(LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate), max_effects=1)
-    return identify(est, vals, desc, cfg, check=chk)
+    return identify_recorded(name, tmp_path)[0]
 
 
 def test_clean_plant_accepts_nothing(tmp_path: Path) -> None:

@@ -6,17 +6,19 @@ effect maps to the terms of the node's ``effects`` JSON that it declares
 (:meth:`dvt_identify.effects.Effect.model_terms`; Coulomb with offset, Stribeck, windage,
 measurement delay, sensor gain; the position-dependent ``gravity_load`` -> ``gravity``,
 ``periodic_disturbance`` -> ``angle_periodic``, ``unlisted`` -> one ``library`` term per
-coefficient). Members, angle forms and output indices are mapped from the model's outputs
-to the node's speeds (:data:`dvt_model.contract.SPEED_NAMES`) when the outputs include those
-names, in any order and with other outputs besides (the ``dvt-position`` description's angle
-states ``sun_shaft_angle``, ``carrier3_angle``): a form keeps its entries on the speeds, and a
-term whose form has a non-zero entry on another output, or whose ``output`` is not a speed, is
-not pushed (the node's terms act on its two speeds); a ``library`` term's input is mapped from
-the model's input name to the node's current (:data:`~dvt_model.contract.CURRENT_NAMES`;
-``input_joints``, else the name itself or :data:`INPUT_ALIASES`).
+coefficient; ``backlash`` -> ``dead_zone`` on an input, ``play`` on an output, or
+``spline_play`` for the compliant spline). Members, angle forms and output indices are
+mapped from the model's outputs to the node's speeds (:data:`dvt_model.contract.SPEED_NAMES`)
+when the outputs include those names, in any order and with other outputs besides (the
+``dvt-position`` description's angle states ``sun_shaft_angle``, ``carrier3_angle``): a form
+keeps its entries on the speeds, and a term whose form has a non-zero entry on another output,
+or whose ``output`` is not a speed, is not pushed (the node's terms act on its two speeds); a
+term's input (``library``, ``dead_zone``) is mapped from the model's input name to the node's
+current (:data:`~dvt_model.contract.CURRENT_NAMES`; ``input_joints``, else the name itself or
+:data:`INPUT_ALIASES`).
 
-Effects the model node cannot represent (backlash, an extra brake-engagement stage or dead
-time, a disturbance clocked on time, ...) or whose values it would refuse are listed in
+Effects the model node cannot represent (an extra brake-engagement stage or dead time, a
+disturbance clocked on time, ...) or whose values it would refuse are listed in
 ``skipped`` with the reason and not pushed; so are
 
 - a term that depends on an angle (:func:`dvt_model.contract.term_needs_angle`) when the fit's
@@ -24,8 +26,12 @@ time, a disturbance clocked on time, ...) or whose values it would refuse are li
   speed from 0 at each segment's first sample
   (:data:`~dvt_identify.effects.position.ANGLE_FROM_SPEED`), a phase relative to the
   recording, while the node's angles are the measured positions;
-- a term whose input the identified model transforms (a brake's engagement lag, an input dead
-  zone): the identifier's term saw the transformed input, the node's takes the raw current.
+- a term whose input the identified model transforms (a brake's engagement lag): the
+  identifier's term saw the transformed input, the node's takes the raw current. A pushed
+  ``dead_zone`` is the exception: the node applies it to the current before everything else,
+  so the node's terms see the same input the identifier's did; a dead zone is itself not
+  pushed when another effect transforms its input too (the order would differ), and when it
+  is not pushed the terms on its input are not either.
 
 An effect is pushed whole or not at all. The baseline's band brakes (``brake_lockup``
 ``band_gain_*`` [N m/A] and ``brake_engagement`` ``band_time_constant_*`` [s] on the inputs
@@ -142,7 +148,8 @@ class _Mapping:
         order: ``order[j]`` the model output of node speed ``j``, or ``None`` (positional;
             the outputs do not include the node's speeds).
         inputs: model input name -> node current name, or ``None`` (the node has no such one).
-        transformed: model input name -> label of the effect that transforms it.
+        transformed: model input name -> label of the effect that transforms it (a pushed
+            dead zone does not count: the node applies it too).
         angle_source: :data:`~dvt_identify.effects.position.ANGLE_FROM_POSITION` when every
             fit segment carried the measured angles, else where the angles came from.
     """
@@ -162,35 +169,43 @@ def _effect_terms(pairs: Sequence[tuple[Effect, Any]], ctx: _Mapping
     terms: list[Term] = []
     skipped: list[str] = []
     for eff, p in pairs:
-        raw = eff.model_terms(p, ctx.outputs)
-        if not raw:
-            skipped.append(f"{eff.label()} ({eff.why_no_term(ctx.outputs)})")
-            continue
-        mapped: list[Term] = []
-        why = ""
-        for term in raw:
-            node_term, why = _node_term(term, ctx)
-            if node_term is None:
-                break
-            mapped.append(node_term)
-        if why:
-            skipped.append(f"{eff.label()} ({why})")
-            continue
-        n_node = len(SPEED_NAMES) if ctx.order is not None else len(ctx.outputs)
-        try:
-            checked = validate_effects([*terms, *mapped], n_outputs=n_node)
-        except DvtModelError as exc:
-            skipped.append(f"{eff.label()} (the model node would refuse it: {exc})")
-            continue
-        if any(term_needs_angle(t) for t in checked[len(terms):]) \
-                and ctx.angle_source != ANGLE_FROM_POSITION:
-            skipped.append(
-                f"{eff.label()} (its angle is the {ctx.angle_source}: its phase is relative "
-                "to the recording, the model node's angles are the measured positions; "
-                "identify on a recording with positions to push it)")
-            continue
-        terms = checked
+        n_skipped = len(skipped)
+        _effect_term(eff, p, ctx, terms, skipped)
+        if len(skipped) > n_skipped and _node_input_transform(eff, p):
+            # not pushed: the node's terms on this input would see the raw current
+            ctx.transformed.setdefault(eff.where, eff.label())
     return terms, skipped
+
+
+def _effect_term(eff: Effect, p: Any, ctx: _Mapping, terms: list[Term], skipped: list[str]
+                 ) -> None:
+    """Append ``eff``'s node terms to ``terms`` (validated together with those before), or a
+    line to ``skipped`` saying why it is not pushed."""
+    raw = eff.model_terms(p, ctx.outputs)
+    if not raw:
+        skipped.append(f"{eff.label()} ({eff.why_no_term(ctx.outputs)})")
+        return
+    mapped: list[Term] = []
+    for term in raw:
+        node_term, why = _node_term(term, ctx)
+        if node_term is None:
+            skipped.append(f"{eff.label()} ({why})")
+            return
+        mapped.append(node_term)
+    n_node = len(SPEED_NAMES) if ctx.order is not None else len(ctx.outputs)
+    try:
+        checked = validate_effects([*terms, *mapped], n_outputs=n_node)
+    except DvtModelError as exc:
+        skipped.append(f"{eff.label()} (the model node would refuse it: {exc})")
+        return
+    if any(term_needs_angle(t) for t in checked[len(terms):]) \
+            and ctx.angle_source != ANGLE_FROM_POSITION:
+        skipped.append(
+            f"{eff.label()} (its angle is the {ctx.angle_source}: its phase is relative "
+            "to the recording, the model node's angles are the measured positions; "
+            "identify on a recording with positions to push it)")
+        return
+    terms[:] = checked
 
 
 def _node_term(term: Term, ctx: _Mapping) -> tuple[Term | None, str]:
@@ -214,6 +229,10 @@ def _node_term(term: Term, ctx: _Mapping) -> tuple[Term | None, str]:
     name = out.get("input")
     if name:
         if name in ctx.transformed:
+            if out.get("kind") == "dead_zone":
+                return None, (f"its input {name} is also transformed by "
+                              f"{ctx.transformed[name]} in the identified model; the model "
+                              "node applies a dead zone to the raw current")
             return None, (f"its input {name} is transformed by {ctx.transformed[name]} in the "
                           "identified model; the model node's term takes the raw current")
         node_name = ctx.inputs.get(str(name))
@@ -263,6 +282,8 @@ def _transformed_inputs(pairs: Sequence[tuple[Effect, Any]], inputs: Sequence[st
                          for j in range(nu)]) if nu else np.zeros((n, 0))
     out: dict[str, str] = {}
     for eff, p in pairs:
+        if _node_input_transform(eff, p):
+            continue  # the node applies it to the raw current too
         with np.errstate(all="ignore"):
             ut = eff.input_transform(np.asarray(p, dtype=float), u, dt)
         if ut is None:
@@ -272,6 +293,13 @@ def _transformed_inputs(pairs: Sequence[tuple[Effect, Any]], inputs: Sequence[st
             out.setdefault(inputs[int(j)], eff.label())
         u = ut
     return out
+
+
+def _node_input_transform(eff: Effect, p: Any) -> bool:
+    """Whether the model node applies ``eff``'s input transform itself (its terms include a
+    ``dead_zone``, which the node applies to the current before the model sees it)."""
+    terms = eff.model_terms(np.asarray(p, dtype=float), []) or []
+    return any(t.get("kind") == "dead_zone" for t in terms)
 
 
 def _angle_source(segments: Sequence[Any]) -> str:

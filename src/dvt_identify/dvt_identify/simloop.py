@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from dvt_model import friction
+from dvt_model import backlash, friction
 
 Array = NDArray[np.float64]
 
@@ -47,6 +47,7 @@ _stribeck = njit(cache=True, nogil=True)(friction.stribeck)
 _windage = njit(cache=True, nogil=True)(friction.windage)
 _abs_viscous = njit(cache=True, nogil=True)(friction.abs_viscous)
 _coulomb = njit(cache=True, nogil=True)(friction.coulomb)
+_spline_substep = njit(cache=True, nogil=True)(backlash.spline_substep)
 
 
 @njit(cache=True, nogil=True)
@@ -246,10 +247,9 @@ def _spline_load_kernel(w: Array, dt: float, half: float, a: float, b: float, su
     """Load-shaft speed behind a compliant spline with play, driven by the member speed.
 
     The member speed ``w`` (N,) is linearly interpolated over each sample interval, which is cut
-    into ``sub`` sub-steps (semi-implicit Euler: load speed first, then the twist). The spline
-    acts only outside the gap and never pulls: ``alpha = max(0, a (z - half) + b (w - w_L))``
-    for ``z > half`` (mirrored below ``-half``), ``w_L' = alpha``, ``z' = w - w_L``. Returns the
-    load speed averaged over the sample interval centred on each sample, shape (N,).
+    into ``sub`` sub-steps of :func:`dvt_model.backlash.spline_substep` (the contact law and
+    its integration, written once; the model node's ``spline_play`` term steps the same).
+    Returns the load speed averaged over the sample interval centred on each sample, shape (N,).
     """
     n = w.shape[0]
     h = dt / sub
@@ -261,17 +261,7 @@ def _spline_load_kernel(w: Array, dt: float, half: float, a: float, b: float, su
         w0 = w[k]
         dw = (w[k + 1] - w0) / sub
         for i in range(sub):
-            wc = w0 + dw * (i + 0.5)
-            if z > half:
-                t = a * (z - half) + b * (wc - wl)
-                t = t if t > 0.0 else 0.0
-            elif z < -half:
-                t = a * (z + half) + b * (wc - wl)
-                t = t if t < 0.0 else 0.0
-            else:
-                t = 0.0
-            wl_new = wl + h * t
-            z += h * (wc - wl_new)
+            wl_new, z = _spline_substep(wl, z, w0 + dw * (i + 0.5), h, half, a, b)
             # the sub-step's mean speed belongs to the sample whose interval holds it
             if i < half_sub:
                 acc[k] += 0.5 * (wl + wl_new)

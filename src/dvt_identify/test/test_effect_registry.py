@@ -19,6 +19,7 @@ from dvt_identify.effects import (
     OutputBacklash,
     make_effect,
 )
+from dvt_identify.push import INPUT_ALIASES
 from dvt_model import friction
 from dvt_model.contract import validate_term
 
@@ -95,6 +96,8 @@ def test_the_model_term_is_admissible_or_the_reason_is_given(
     if term is None:
         assert eff.why_no_term(STATES)
         return
+    if term.get("input"):  # model input name -> the node's current, as the push maps it
+        term["input"] = INPUT_ALIASES.get(term["input"], term["input"])
     checked = validate_term(term, f"{eff.label()}", n_outputs=len(STATES))
     assert checked["kind"] == term["kind"]
     for key, value in term.items():

@@ -89,16 +89,19 @@ def test_effects_push_their_declared_terms_and_the_rest_is_said() -> None:
                            suffix=f"_{where}")
     effects = [eff("stribeck_friction", "sun_shaft"), eff("windage", "carrier3"),
                eff("measurement_delay", "carrier3"), eff("sensor_gain", "carrier3"),
-               eff("backlash", "carrier3")]
+               eff("backlash", "carrier3"), eff("asymmetric_friction", "carrier3")]
     values = {"Fs_sun_shaft": 0.2, "vs_sun_shaft": 3.0, "Cw_carrier3": 1e-4,
-              "delay_carrier3": 0.004, "gain_carrier3": 0.03, "delta_carrier3": 0.01}
+              "delay_carrier3": 0.004, "gain_carrier3": 0.03, "delta_carrier3": 0.01,
+              "dFv_carrier3": 1e-3}
     stage, _ = _stage(effects, values)
     push = model_node_parameters(stage)  # type: ignore[arg-type]
     terms = json.loads(push.parameters["effects"])
-    assert [t["kind"] for t in terms] == ["stribeck", "windage", "delay", "gain"]
+    assert [t["kind"] for t in terms] == ["stribeck", "windage", "delay", "gain", "play"]
     assert terms[0]["member"] == [1.0, 0.0] and terms[0]["vs"] == 3.0
     assert terms[3] == {"kind": "gain", "output": 1, "gain": 0.03}
-    assert push.skipped == ["backlash@carrier3 (the model node has no backlash term)"]
+    assert terms[4] == {"kind": "play", "output": 1, "delta": 0.01}
+    assert push.skipped == ["asymmetric_friction@carrier3 (the model node has no "
+                            "direction-dependent viscous term)"]
 
 
 def test_a_term_the_node_would_refuse_is_not_pushed() -> None:

@@ -41,10 +41,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dvt_model.contract import (
+    CURRENT_NAMES,
     DETECTOR_PREFIX,
     M_MAX_CONDITION,
     M_MIN_EIGENVALUE,
     MODEL_PARAMETERS,
+    SPEED_NAMES,
     short_repr,
 )
 from dvt_model.detect import DetectorConfig
@@ -333,8 +335,15 @@ def build_predictor(values: Mapping[str, Any]) -> tuple[Predictor, str]:
         if terms.has_angle_terms:
             desc += f", {len(terms.angle_terms)} angle term(s)"
         desc += f", delay {terms.delay:g} s"
+        if terms.has_lost_motion:
+            zones = [n for n, d in zip(CURRENT_NAMES, terms.dead_zones, strict=True) if d]
+            plays = [f"{t['kind']} on {SPEED_NAMES[i]}" for i, t in enumerate(terms.plays)
+                     if t is not None]
+            desc += ", lost motion: " + ", ".join(
+                ([f"dead zone on {', '.join(zones)}"] if zones else []) + plays)
     predictor = Predictor(model, cfg.brake, mode="reanchor" if cfg.mode == "reanchor"
                           else "simulate", reanchor_period=cfg.reanchor_period,
                           gap_reset=cfg.gap_reset, output_delay=terms.delay,
-                          output_gain=terms.gains)
+                          output_gain=terms.gains, input_dead_zone=terms.dead_zones,
+                          output_maps=terms.output_maps())
     return predictor, desc

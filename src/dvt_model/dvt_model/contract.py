@@ -212,6 +212,9 @@ _MAX_ORDER = 1e4
 """Largest admissible angle order [1/rev] (a mesh order is a tooth count, below 200)."""
 _MAX_COEFFICIENT = 1e6
 """Largest admissible |k| of a ``library`` term (its unit depends on the factors)."""
+_MAX_CURRENT = 1e3
+"""Largest admissible ``dead_zone`` half-width [A]."""
+"""Largest admissible |k| of a ``library`` term (its unit depends on the factors)."""
 _ORDER = TermParam("order", "1/rev", 0.0, _MAX_ORDER,
                    doc="angle order per member revolution, >= 0")
 LIBRARY_SPEED_FACTORS: tuple[str, ...] = ("", "sign", "abs_sq", "cube")
@@ -273,6 +276,23 @@ EFFECT_TERMS: dict[str, TermKind] = {k.kind: k for k in (
                             doc="input factor u [A]: '' 1, else that current of "
                                 "/dvt/currents")),
         doc="k S(v) T(order theta_a) u"),
+    # lost motion (dvt_model.backlash): on an input current, or between a member and its sensor
+    TermKind("dead_zone", (
+        TermParam("delta", "A", 0.0, _MAX_CURRENT, doc="half-width of the dead zone, >= 0"),),
+        member=False,
+        choices=(TermChoice("input", CURRENT_NAMES,
+                            doc="the current of /dvt/currents it acts on"),),
+        doc="u - clip(u, -delta, delta) on the named current, before the model"),
+    TermKind("play", (
+        TermParam("delta", "rad", 0.0, 1.0, doc="half-width of the play, in [0, 1]"),),
+        member=False, output=True,
+        doc="the output's speed read through rigid play of +-delta in its angle"),
+    TermKind("spline_play", (
+        TermParam("gap", "rad", 0.0, 1.0, doc="total play, in [0, 1]"),
+        TermParam("wn", "rad/s", 10.0, 1e4, doc="contact frequency sqrt(k / J_load)"),
+        TermParam("zeta", "1", 1e-3, 2.0, doc="contact damping ratio")),
+        member=False, output=True,
+        doc="the output is a load driven by its member through a compliant spline with play"),
 )}
 """Every effect term the model node understands, by ``kind``.
 
@@ -287,10 +307,19 @@ member's own angle; ``theta`` the model's angles, anchored to the measured posit
 ``sign_eps(v) = tanh(v / eps)``. The model node holds each torque over a step ``dt`` of its
 simulation; the angle factors are then their means over the angle interval ``[theta_a,
 theta_a + (a . omega) dt]`` (a ripple faster than the step does not alias), as the
-identifier's are over the measured interval."""
+identifier's are over the measured interval.
+
+Lost motion (:mod:`dvt_model.backlash`): ``dead_zone`` acts on a current of ``/dvt/currents``
+before the model sees it (everything in the model, band torques included, sees the
+transformed current); ``play`` and ``spline_play`` map the predicted speed of output
+``output`` to what its sensor reads behind rigid play or a compliant spline to a load, before
+the output ``delay`` and ``gain``."""
 
 ANGLE_TERM_KINDS: tuple[str, ...] = ("gravity", "angle_periodic", "library")
 """Kinds whose law the model node evaluates on the angles (and inputs): the driving torques."""
+OUTPUT_PLAY_KINDS: tuple[str, ...] = ("play", "spline_play")
+"""Kinds that map a member's speed to what its sensor reads through lost motion (at most one
+per output)."""
 
 
 def term_needs_angle(term: Mapping[str, Any]) -> bool:
@@ -370,7 +399,8 @@ def validate_effects(data: str | Sequence[Any] | None, n_outputs: int = len(SPEE
     """Check the model node's ``effects`` (JSON text or decoded list); '' / None: no terms.
 
     Also checks the list as a whole: at most :data:`MAX_EFFECT_TERMS` terms, at most one
-    ``delay`` and one ``gain`` per output.
+    ``delay``, one ``gain`` and one ``play``/``spline_play`` per output, and one ``dead_zone``
+    per input.
 
     Raises:
         ContractError: naming the entry index, the field and the value.
@@ -398,6 +428,13 @@ def validate_effects(data: str | Sequence[Any] | None, n_outputs: int = len(SPEE
     outs = [t["output"] for t in terms if t["kind"] == "gain"]
     if len(outs) != len(set(outs)):
         raise ContractError(f"effects: more than one gain term for one output ({outs})")
+    plays = [t["output"] for t in terms if t["kind"] in OUTPUT_PLAY_KINDS]
+    if len(plays) != len(set(plays)):
+        raise ContractError(f"effects: more than one play or spline_play term for one output "
+                            f"({plays})")
+    zones = [t["input"] for t in terms if t["kind"] == "dead_zone"]
+    if len(zones) != len(set(zones)):
+        raise ContractError(f"effects: more than one dead_zone term for one input ({zones})")
     return terms
 
 

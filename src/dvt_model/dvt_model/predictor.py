@@ -28,6 +28,12 @@ last anchor (0 at the start), and the prediction carries no angle residual. A jo
 gravity torque depends on the carrier-3 angle, so a load is predicted right only from the
 measured angles.
 
+Lost motion (the ``dead_zone``, ``play`` and ``spline_play`` terms, :mod:`dvt_model.backlash`):
+a dead zone is applied to the measured current as it arrives, so the model (band torques and
+input terms included) sees the transformed current; an output's sensor map turns the model's
+speed of that output into what its sensor reads (rigid play or a compliant spline to a load),
+and starts again at every anchor. The angles are the model's, not mapped.
+
 The guard: a prediction is never non-finite or implausibly large. If a model step fails or
 leaves a speed that is not finite or exceeds :data:`OMEGA_GUARD` in magnitude (a diverging
 model, e.g. an identified model that is wrong far from its data), the model is re-anchored to
@@ -46,6 +52,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from dvt_model.backlash import OutputMap, dead_zone
 from dvt_model.brake import band_torques, capacity_step
 from dvt_model.errors import DvtModelError, SimulationError
 from dvt_model.hybrid import HybridModel, HybridState
@@ -89,12 +96,19 @@ class Predictor:
         reanchor_period: seconds between re-anchors in ``"reanchor"`` mode.
         gap_reset: a stamp gap [s] longer than this re-anchors (stream restart).
         rms_window: number of samples in the running residual RMS.
+        output_delay: the outputs' measurement delay [s] (whole samples).
+        output_gain: each output's relative scale error (output scaled by ``1 + gain``).
+        input_dead_zone: half-width of a dead zone on each current (drive motor, brakes 1-3)
+            [A], 0 for none; shape (4,).
+        output_maps: each output's sensor map through lost motion, or ``None``; (2,).
     """
 
     def __init__(self, model: HybridModel | LinearModel, brake: BrakeParams,
                  mode: Mode = "simulate", reanchor_period: float = 1.0,
                  gap_reset: float = 0.5, rms_window: int = 1000,
-                 output_delay: float = 0.0, output_gain: tuple[float, float] = (0.0, 0.0)
+                 output_delay: float = 0.0, output_gain: tuple[float, float] = (0.0, 0.0),
+                 input_dead_zone: ArrayLike = (0.0, 0.0, 0.0, 0.0),
+                 output_maps: tuple[OutputMap | None, OutputMap | None] = (None, None)
                  ) -> None:
         if mode not in ("simulate", "reanchor"):
             raise SimulationError(f"mode: expected 'simulate' or 'reanchor', got {mode!r}")
@@ -107,6 +121,16 @@ class Predictor:
         self.gap_reset = gap_reset
         self.output_delay = float(output_delay)
         self.output_gain = np.asarray(output_gain, dtype=float) + 1.0
+        zones = np.asarray(input_dead_zone, dtype=float).reshape(-1)
+        if zones.shape != (4,) or not np.all(np.isfinite(zones)) or np.any(zones < 0.0):
+            raise SimulationError(f"input_dead_zone: expected 4 finite numbers >= 0 [A], got "
+                                  f"{zones.tolist()}")
+        self._zones: tuple[float, ...] | None = (tuple(float(z) for z in zones)
+                                                  if np.any(zones > 0.0) else None)
+        if len(output_maps) != 2:
+            raise SimulationError(f"output_maps: expected one per output (2), got "
+                                  f"{len(output_maps)}")
+        self._maps = output_maps if any(m is not None for m in output_maps) else None
         self._history: deque[tuple[float, Array]] = deque()
         self._state: HybridState | None = None
         self._omega = np.zeros(2)
@@ -226,6 +250,9 @@ class Predictor:
         if not (math.isfinite(i_motor) and _all_finite(ib.tolist())
                 and _all_finite(meas.tolist()) and math.isfinite(stamp)):
             raise SimulationError(f"sample at stamp {stamp!r}: non-finite value")
+        if self._zones is not None:  # lost motion on the inputs: what the model sees
+            i_motor = float(dead_zone(i_motor, self._zones[0]))
+            ib = np.asarray(dead_zone(ib, np.asarray(self._zones[1:])), dtype=float)
         th_meas: Array | None = None
         if theta_measured is not None:
             th_meas = np.asarray(theta_measured, dtype=float).reshape(2)
@@ -259,6 +286,17 @@ class Predictor:
             position = self._theta.copy()
         if anchored:
             self._history.clear()
+        if self._maps is not None:  # the sensors read the speeds through lost motion
+            step = 0.0 if anchored or last is None else stamp - last
+            sensed = []
+            for j, m in enumerate(self._maps):
+                if m is None:
+                    sensed.append(float(predicted[j]))
+                    continue
+                if anchored:
+                    m.reset()
+                sensed.append(m.sensed_speed(float(predicted[j]), step))
+            predicted = np.array(sensed)
         if self.output_delay > 0.0:
             # measured output at t is the machine's state at t - delay (sensor delay)
             self._history.append((stamp, np.concatenate([predicted, position])))

@@ -49,6 +49,12 @@ them; without positions the angles start at 0 at every anchor and the phase is a
 
 ``delay`` shifts the predicted outputs by whole samples, ``gain`` scales output ``output`` by
 ``1 + gain``.
+
+Lost motion (:mod:`dvt_model.backlash`): ``dead_zone`` takes ``u - clip(u, -delta, delta)`` of
+the named current before the model sees it (:attr:`Terms.dead_zones`); ``play`` and
+``spline_play`` map the predicted speed of output ``output`` to what its sensor reads
+(:meth:`Terms.output_maps`: :class:`~dvt_model.backlash.OutputPlay`,
+:class:`~dvt_model.backlash.OutputSpline`), before the delay and the gain.
 """
 
 from __future__ import annotations
@@ -62,7 +68,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dvt_model import friction
-from dvt_model.contract import ANGLE_TERM_KINDS, CURRENT_NAMES, SPEED_NAMES, validate_effects
+from dvt_model.backlash import OutputMap, OutputPlay, OutputSpline
+from dvt_model.contract import (
+    ANGLE_TERM_KINDS,
+    CURRENT_NAMES,
+    OUTPUT_PLAY_KINDS,
+    SPEED_NAMES,
+    validate_effects,
+)
 
 Array = NDArray[np.float64]
 Vec = Array | Sequence[float]
@@ -237,12 +250,23 @@ class Terms:
         delay: output delay [s].
         gains: relative output gain error per output (output scaled by ``1 + gain``).
         angle_terms: the angle-dependent terms (``gravity``, ``angle_periodic``, ``library``).
+        dead_zones: half-width of the dead zone on each current (drive motor, brakes 1-3) [A],
+            0 for none.
+        plays: the ``play``/``spline_play`` term of each output (validated fields), or
+            ``None``.
     """
 
     forces: tuple[ForceTerm, ...] = ()
     delay: float = 0.0
     gains: tuple[float, float] = (0.0, 0.0)
     angle_terms: AngleTerms = _NO_ANGLE_TERMS
+    dead_zones: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    plays: tuple[dict[str, Any] | None, dict[str, Any] | None] = (None, None)
+
+    def output_maps(self) -> tuple[OutputMap | None, OutputMap | None]:
+        """A fresh sensor map (state inside) for each output with a ``play`` or
+        ``spline_play`` term, else ``None``."""
+        return (_output_map(self.plays[0]), _output_map(self.plays[1]))
 
     def extra_force(self, omega: Array, t: float) -> Array:
         """Generalised torque of all force terms [N m], shape (2,), at speeds ``omega`` (2,)."""
@@ -276,9 +300,23 @@ class Terms:
         return len(self.angle_terms) > 0
 
     @property
+    def has_lost_motion(self) -> bool:
+        """Whether any ``dead_zone``, ``play`` or ``spline_play`` term is present."""
+        return any(self.dead_zones) or any(p is not None for p in self.plays)
+
+    @property
     def empty(self) -> bool:
         return (not self.forces and not self.has_angle_terms and self.delay == 0.0
-                and self.gains == (0.0, 0.0))
+                and self.gains == (0.0, 0.0) and not self.has_lost_motion)
+
+
+def _output_map(term: dict[str, Any] | None) -> OutputMap | None:
+    """The stateful sensor map of a validated ``play``/``spline_play`` term."""
+    if term is None:
+        return None
+    if term["kind"] == "play":
+        return OutputPlay(delta=float(term["delta"]))
+    return OutputSpline(gap=float(term["gap"]), wn=float(term["wn"]), zeta=float(term["zeta"]))
 
 
 def parse_terms(text: str | Sequence[Any] | None) -> Terms:
@@ -292,16 +330,24 @@ def parse_terms(text: str | Sequence[Any] | None) -> Terms:
     angle: list[dict[str, Any]] = []
     delay = 0.0
     gains = [0.0, 0.0]
+    zones = [0.0] * N_INPUTS
+    plays: list[dict[str, Any] | None] = [None, None]
     for term in validate_effects(text, n_outputs=len(SPEED_NAMES)):
         kind = term["kind"]
         if kind == "delay":
             delay = float(term["seconds"])
         elif kind == "gain":
             gains[int(term["output"])] = float(term["gain"])
+        elif kind == "dead_zone":
+            zones[CURRENT_NAMES.index(term["input"])] = float(term["delta"])
+        elif kind in OUTPUT_PLAY_KINDS:
+            plays[int(term["output"])] = term
         elif kind in ANGLE_TERM_KINDS:
             angle.append(term)
         else:
             params = {k: float(v) for k, v in term.items() if k not in ("kind", "member")}
             forces.append(ForceTerm(kind, np.asarray(term["member"], dtype=float), params))
     return Terms(forces=tuple(forces), delay=delay, gains=(gains[0], gains[1]),
-                 angle_terms=AngleTerms.from_terms(angle) if angle else _NO_ANGLE_TERMS)
+                 angle_terms=AngleTerms.from_terms(angle) if angle else _NO_ANGLE_TERMS,
+                 dead_zones=(zones[0], zones[1], zones[2], zones[3]),
+                 plays=(plays[0], plays[1]))

@@ -2,12 +2,15 @@
 and its speed sensor, or play in a compliant spline to a load (option ``compliant: true``).
 
 The registry tries :class:`CompliantOutputBacklash`, then :class:`OutputBacklash` (``where`` a
-state), then :class:`Backlash` (``where`` an input). The model node has no backlash term.
+state), then :class:`Backlash` (``where`` an input). The laws are :mod:`dvt_model.backlash`'s,
+which the model node's terms use too: a dead zone is pushed as a ``dead_zone`` term, play on an
+output as ``play``, the compliant spline as ``spline_play``.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,12 +21,16 @@ from dvt_identify.effects.base import (
     Effect,
     ParamSpec,
     SegmentView,
+    Term,
     numbers_option,
 )
 from dvt_identify.errors import DescriptionError
 from dvt_identify.simloop import spline_load
+from dvt_model.backlash import dead_zone, play, spline_substeps
 
-_NO_TERM = "the model node has no backlash term"
+
+def _not_an_output(where: str, outputs: Sequence[str]) -> str:
+    return f"{where!r} is not one of the model's outputs {list(outputs)}"
 
 
 @dataclass
@@ -31,11 +38,11 @@ class Backlash(Effect):
     """Dead zone of half-width ``delta`` on one input: ``u -> u - clip(u, -delta, delta)``.
 
     Models transmission backlash/lost motion seen from the input side (no position state is
-    needed). Parameter ``delta`` (>= 0, input unit).
+    needed). Parameter ``delta`` (>= 0, input unit). Model node: a ``dead_zone`` term on the
+    input's current (the push maps the input name).
     """
 
     name = "backlash"
-    no_term = _NO_TERM
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -44,10 +51,12 @@ class Backlash(Effect):
                    index=ctx.input_index(), options=dict(ctx.options))
 
     def input_transform(self, p: Array, u: Array, dt: float) -> Array | None:
-        d = max(float(p[0]), 0.0)
         out = u.copy()
-        out[:, self.index] = u[:, self.index] - np.clip(u[:, self.index], -d, d)
+        out[:, self.index] = dead_zone(u[:, self.index], max(float(p[0]), 0.0))
         return out
+
+    def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
+        return {"kind": "dead_zone", "input": self.where, "delta": max(float(p[0]), 0.0)}
 
 
 @dataclass
@@ -56,11 +65,10 @@ class OutputBacklash(Effect):
     operator on the integrated output): after a reversal the sensed shaft stands still until
     the gap is crossed. ``theta_out`` follows ``theta = integral of x_j`` within
     ``[theta - delta, theta + delta]``; the measured speed is ``d theta_out / dt``.
-    Parameter ``delta`` (in [0, 1], rad or m).
+    Parameter ``delta`` (in [0, 1], rad or m). Model node: a ``play`` term on that output.
     """
 
     name = "backlash"
-    no_term = _NO_TERM
 
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:
@@ -83,10 +91,7 @@ class OutputBacklash(Effect):
         out_pos = np.empty_like(theta)
         pos = 0.0
         for k, th in enumerate(theta.tolist()):
-            if th - pos > d:
-                pos = th - d
-            elif pos - th > d:
-                pos = th + d
+            pos = play(pos, th, d)
             out_pos[k] = pos
         out = y.copy()
         speed = np.empty(y.shape[0])
@@ -94,6 +99,15 @@ class OutputBacklash(Effect):
         speed[-1] = y[-1, j] if abs(theta[-1] - out_pos[-1]) >= d else 0.0
         out[:, j] = speed
         return out
+
+    def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
+        if self.where not in outputs:
+            return None
+        return {"kind": "play", "output": list(outputs).index(self.where),
+                "delta": max(float(p[0]), 0.0)}
+
+    def why_no_term(self, outputs: Sequence[str]) -> str:
+        return _not_an_output(self.where, outputs)
 
 
 @dataclass
@@ -115,11 +129,12 @@ class CompliantOutputBacklash(Effect):
     included], ``wn`` [rad/s, in [10, 1e4]] and ``zeta`` [1, in [1e-3, 2]] (shape parameters,
     scanned by the scorer; options ``wn``, ``zeta`` are their starts). The effect is not
     differentiable at ``gap = 0`` (an impact oscillator), so the scorer's gap regressor is the
-    secant to a probe play (option ``probe_gap``, default 0.01 rad).
+    secant to a probe play (option ``probe_gap``, default 0.01 rad). Model node: a
+    ``spline_play`` term on that output (the load speed at the sample instant,
+    :class:`dvt_model.backlash.OutputSpline`).
     """
 
     name = "backlash"
-    no_term = _NO_TERM
 
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:
@@ -149,13 +164,19 @@ class CompliantOutputBacklash(Effect):
         gap, wn, zeta = max(float(p[0]), 0.0), max(float(p[1]), 1e-9), max(float(p[2]), 0.0)
         if gap == 0.0:
             return None
-        # sub-steps: wn h <= 0.2 (the explicit contact stays accurate) and an even count
-        sub = max(2, math.ceil(dt * wn / 0.2))
-        sub += sub % 2
         out = y.copy()
         out[:, self.index] = spline_load(y[:, self.index], dt, 0.5 * gap, wn * wn,
-                                          2.0 * zeta * wn, sub)
+                                          2.0 * zeta * wn, spline_substeps(dt, wn))
         return out
+
+    def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
+        if self.where not in outputs:
+            return None
+        return {"kind": "spline_play", "output": list(outputs).index(self.where),
+                "gap": max(float(p[0]), 0.0), "wn": float(p[1]), "zeta": float(p[2])}
+
+    def why_no_term(self, outputs: Sequence[str]) -> str:
+        return _not_an_output(self.where, outputs)
 
     def variants(self, seg: SegmentView) -> list[tuple[str, dict[str, float]]]:
         """Grid of contact frequency ``wn`` (below the Nyquist frequency of ``seg``: the data
