@@ -95,6 +95,13 @@ def test_coulomb_accepted_and_recovered(tmp_path: Path) -> None:
     assert res.final.val.fit_percent[0] > res.baseline.val.fit_percent[0] + 1.0
     dec = res.accepted[0]
     assert dec.lr > dec.lr_threshold and dec.delta_bic < 0
+    # the simpler direction-dependent viscous law (1 parameter) passes too, but the richer
+    # Coulomb friction (2) is significantly better on validation: parsimony does not apply
+    [asym] = [d for d in res.decisions if d.score.effect.name == "asymmetric_friction"]
+    assert not asym.accepted and asym.dof < dec.dof
+    assert asym.reason.startswith("passes (")
+    assert ("but coulomb_friction@v has the larger LR" in asym.reason
+            and "and is significantly better on validation (error " in asym.reason)
     rep = build_report(res)
     first = rep["effects"][0]
     assert first["name"] == "coulomb_friction" and first["accepted"] is True
