@@ -1,7 +1,7 @@
 """``--select-on cv``: effects chosen by leave-one-bag-out cross-validation across the
 estimation bags; the test bags take no part.
 
-The toy is the cart of ``test_selection.py`` (``M v' = F - Fv v``, M 2.5 kg, Fv 4 N s/m, random
+The toy is the cart of ``conftest.py`` (``M v' = F - Fv v``, M 2.5 kg, Fv 4 N s/m, random
 force steps, 1 % noise), read with or without a constant sensor offset of 0.3 m/s (about a
 third of the speed's standard deviation) and with one candidate, ``sensor_offset``.
 """
@@ -9,73 +9,42 @@ third of the speed's standard deviation) and with one candidate, ``sensor_offset
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 
 from dvt_identify import pipeline
 from dvt_identify.cli import EXIT_USAGE, main
-from dvt_identify.data import Segment, make_segment
-from dvt_identify.description import Description, parse_description
+from dvt_identify.data import Segment
+from dvt_identify.description import Description
 from dvt_identify.errors import DataError
 from dvt_identify.loop import LoopConfig, bag_of, cv_folds, identify
-from dvt_identify.simulation import OEModel
-
-DESC = {
-    "name": "cart",
-    "inputs": [{"name": "force", "topic": "/cart/drive", "field": "effort", "joint": "cart"}],
-    "outputs": [{"name": "v", "topic": "/cart/joint_states", "field": "velocity",
-                 "joint": "cart"}],
-    "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                  "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
-                  "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                 "Fv": {"initial": 3.0, "lower": 0.0}}},
-    "candidates": [{"effect": "sensor_offset", "where": "v"}],
-    "preprocess": {"fit_decimate": 1},
-    "fit": {"starts": 1, "refit_starts": 1},
-}
-
-
-def record(d: Description, name: str, seed: int, n: int = 1500, offset: float = 0.0
-           ) -> Segment:
-    """A cart ``M v' = F - Fv v`` (M 2.5, Fv 4) under random force steps, 1 % noise, read
-    with ``offset`` [m/s]."""
-    rng = np.random.default_rng(seed)
-    u = np.repeat(rng.uniform(-5, 5, n // 50 + 1), 50)[:n]
-    t = np.arange(n) * 0.01
-    clean = make_segment(name, t, u, np.zeros(n), d.input_names, d.output_names)
-    y = OEModel(d.structure).simulate(np.array([2.5, 4.0]), clean, np.zeros(1))
-    y = y + offset + 0.01 * rng.standard_normal(y.shape)
-    return make_segment(name, t, u, y, d.input_names, d.output_names)
-
 
 CFG = LoopConfig(starts=1, refit_starts=1, drift_windows=0)
 OFFSET = 0.3
+Record = Callable[..., Segment]
 
 
-def desc() -> Description:
-    return parse_description(DESC, "cart.yaml")
-
-
-def bags(d: Description, offset: float, seeds: Sequence[int] = (11, 12)) -> list[Segment]:
+def bags(record: Record, d: Description, offset: float, seeds: Sequence[int] = (11, 12)
+         ) -> list[Segment]:
     return [record(d, f"est{k}", s, offset=offset) for k, s in enumerate(seeds)]
 
 
-def test_folds_keep_the_pieces_of_a_bag_together() -> None:
-    d = desc()
-    a, b = bags(d, 0.0)
-    pieces = [a, *[record(d, f"{b.name}#{k}", 20 + k) for k in (1, 2)]]
+def test_folds_keep_the_pieces_of_a_bag_together(
+        cart_desc: Callable[..., Description], cart_record: Record) -> None:
+    d = cart_desc()
+    a, b = bags(cart_record, d, 0.0)
+    pieces = [a, *[cart_record(d, f"{b.name}#{k}", 20 + k) for k in (1, 2)]]
     assert bag_of("run/bag#2") == "run/bag" and bag_of("run/bag") == "run/bag"
     assert cv_folds(pieces) == [[0], [1, 2]]
 
 
-def test_cv_accepts_a_true_offset_out_of_fold() -> None:
-    d = desc()
-    est = bags(d, OFFSET)
+def test_cv_accepts_a_true_offset_out_of_fold(
+        cart_desc: Callable[..., Description], cart_record: Record) -> None:
+    d = cart_desc()
+    est = bags(cart_record, d, OFFSET)
     res = identify(est, [], d, CFG, cross_validate=True)
     assert res.selection == "cv"
     assert [dec.score.label for dec in res.accepted] == ["sensor_offset@v"]
@@ -98,19 +67,21 @@ def test_cv_accepts_a_true_offset_out_of_fold() -> None:
     assert res.final.val.mean_fit > 95.0 > res.baseline.val.mean_fit
 
 
-def test_cv_rejects_an_offset_that_is_not_there() -> None:
-    d = desc()
-    res = identify(bags(d, 0.0), [], d, CFG, cross_validate=True)
+def test_cv_rejects_an_offset_that_is_not_there(
+        cart_desc: Callable[..., Description], cart_record: Record) -> None:
+    d = cart_desc()
+    res = identify(bags(cart_record, d, 0.0), [], d, CFG, cross_validate=True)
     assert res.accepted == []
     assert res.final is res.baseline and res.baseline.val.mean_fit > 95.0
 
 
-def test_cv_rejects_an_offset_of_one_bag_only() -> None:
+def test_cv_rejects_an_offset_of_one_bag_only(
+        cart_desc: Callable[..., Description], cart_record: Record) -> None:
     """An offset in one bag and not in the other: on all estimation bags LR and BIC pass (a
     mean offset of half the size explains much), but out of fold the offset fitted on one bag
     makes the other worse, so the cross-validated test refuses it."""
-    d = desc()
-    est = [record(d, "est0", 11, offset=OFFSET), record(d, "est1", 12)]
+    d = cart_desc()
+    est = [cart_record(d, "est0", 11, offset=OFFSET), cart_record(d, "est1", 12)]
     res = identify(est, [], d, CFG, cross_validate=True)
     assert res.accepted == []
     dec, = res.decisions
@@ -121,10 +92,11 @@ def test_cv_rejects_an_offset_of_one_bag_only() -> None:
     assert "not significantly better" in dec.reason
 
 
-def test_cv_needs_two_bags_and_no_validation_data() -> None:
-    d = desc()
-    one, two = bags(d, 0.0)
-    pieces = [one, record(d, "est0#2", 5)]  # one bag split at a gap is still one bag
+def test_cv_needs_two_bags_and_no_validation_data(
+        cart_desc: Callable[..., Description], cart_record: Record) -> None:
+    d = cart_desc()
+    one, two = bags(cart_record, d, 0.0)
+    pieces = [one, cart_record(d, "est0#2", 5)]  # one bag split at a gap is still one bag
     with pytest.raises(DataError, match=r"--select-on cv: .*at least 2 estimation bags, got 1"):
         identify(pieces, [], d, CFG, cross_validate=True)
     with pytest.raises(DataError, match="takes no validation segments"):
@@ -140,45 +112,12 @@ def test_cli_refuses_cv_with_one_bag(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "--select-on cv" in err and "at least 2 estimation bags, got 1" in err
 
 
-@pytest.fixture
-def cv_bags(monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-            ) -> tuple[list[str], dict[str, float], Path]:
-    """A description file and ``pipeline`` with reads and ``identify`` traced; the offset of
-    each bag's speed is set per test (``offsets``)."""
-    events: list[str] = []
-    offsets: dict[str, float] = {}
-    seeds = {"est0": 11, "est1": 12, "val": 2, "test": 3}
-    path = tmp_path / "cart.yaml"
-    path.write_text(yaml.safe_dump(DESC))
-
-    def load(paths: Sequence[str | Path], d: Description) -> list[Any]:
-        out = []
-        for b in paths:
-            name = Path(b).name
-            events.append(f"read {name}")
-            out.append(record(d, name, seeds[name], offset=offsets.get(name, 0.0)))
-        return out
-
-    real = pipeline.identify
-
-    def traced(est: Sequence[Any], val: Sequence[Any], *a: Any, **k: Any) -> Any:
-        events.append("identify: " + ",".join(s.name for s in est) + " | "
-                      + ",".join(s.name for s in val))
-        res = real(est, val, *a, **k)
-        events.append("choices made")
-        return res
-
-    monkeypatch.setattr(pipeline, "load_segments", load)
-    monkeypatch.setattr(pipeline, "identify", traced)
-    return events, offsets, path
-
-
 def test_cv_selection_never_reads_the_test_bags(
-        cv_bags: tuple[list[str], dict[str, float], Path], tmp_path: Path) -> None:
+        traced_pipeline: tuple[list[str], dict[str, float], Path], tmp_path: Path) -> None:
     """The validation and test bags are read only after every choice (the trace), and what
     they hold (here an offset of 1 m/s the estimation bags do not have) changes nothing but the
     test figure."""
-    events, offsets, d = cv_bags
+    events, offsets, d = traced_pipeline
     runs = []
     for k, test_offset in enumerate((0.0, 1.0)):
         events.clear()

@@ -3,75 +3,24 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
-import yaml
 
 from dvt_identify import pipeline
 from dvt_identify.cli import main
-from dvt_identify.data import Segment, make_segment
-from dvt_identify.description import Description, parse_description
+from dvt_identify.description import parse_description
 from dvt_identify.errors import DataError
-from dvt_identify.simulation import OEModel
-
-SEEDS = {"est": 1, "val": 2, "test": 3}
-DESC = {
-    "name": "cart",
-    "inputs": [{"name": "force", "topic": "/cart/drive", "field": "effort", "joint": "cart"}],
-    "outputs": [{"name": "v", "topic": "/cart/joint_states", "field": "velocity",
-                 "joint": "cart"}],
-    "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                  "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
-                  "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                 "Fv": {"initial": 3.0, "lower": 0.0}}},
-    "candidates": [{"effect": "sensor_offset", "where": "v"}],
-    "preprocess": {"fit_decimate": 1},
-    "fit": {"starts": 1, "refit_starts": 1},
-}
-
-
-def record(desc: Description, name: str, seed: int, n: int = 1500, offset: float = 0.0
-           ) -> Segment:
-    """A cart ``M v' = F - Fv v`` (M 2.5, Fv 4) under random force steps, 1 % noise."""
-    rng = np.random.default_rng(seed)
-    u = np.repeat(rng.uniform(-5, 5, n // 50 + 1), 50)[:n]
-    t = np.arange(n) * 0.01
-    clean = make_segment(name, t, u, np.zeros(n), desc.input_names, desc.output_names)
-    y = OEModel(desc.structure).simulate(np.array([2.5, 4.0]), clean, np.zeros(1))
-    y = y + offset + 0.01 * rng.standard_normal(y.shape)
-    return make_segment(name, t, u, y, desc.input_names, desc.output_names)
 
 
 @pytest.fixture
-def traced(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> tuple[list[str], Path]:
-    """A description file, and ``pipeline`` with reads and ``identify`` traced in order."""
-    events: list[str] = []
-    path = tmp_path / "cart.yaml"
-    path.write_text(yaml.safe_dump(DESC))
-
-    def load(bags: Sequence[str | Path], desc: Description) -> list[Any]:
-        out = []
-        for b in bags:
-            name = Path(b).name
-            events.append(f"read {name}")
-            out.append(record(desc, name, SEEDS[name], offset=0.3))
-        return out
-
-    real = pipeline.identify
-
-    def identify(est: Sequence[Any], val: Sequence[Any], *a: Any, **k: Any) -> Any:
-        events.append("identify: " + ",".join(s.name for s in est) + " | "
-                      + ",".join(s.name for s in val))
-        res = real(est, val, *a, **k)
-        events.append("choices made")
-        return res
-
-    monkeypatch.setattr(pipeline, "load_segments", load)
-    monkeypatch.setattr(pipeline, "identify", identify)
+def traced(traced_pipeline: tuple[list[str], dict[str, float], Path]) -> tuple[list[str], Path]:
+    """The cart's description file, and ``pipeline`` with reads and ``identify`` traced in
+    order; the bags ``est``, ``val`` and ``test`` are read with a speed offset of 0.3 m/s."""
+    events, offsets, path = traced_pipeline
+    offsets.update(est=0.3, val=0.3, test=0.3)
     return events, path
 
 
@@ -121,8 +70,8 @@ def test_cli_test_option_and_refusals(traced: tuple[list[str], Path], tmp_path: 
         main([str(tmp_path / "est"), "--out", str(tmp_path / "o3")])  # no --validate
 
 
-def test_description_loads(tmp_path: Path) -> None:
-    assert parse_description(DESC, "cart.yaml").output_names == ("v",)
+def test_description_loads(tmp_path: Path, cart_spec: Callable[..., dict[str, Any]]) -> None:
+    assert parse_description(cart_spec(), "cart.yaml").output_names == ("v",)
 
 
 def test_a_term_clocked_on_time_is_warned_across_segments() -> None:

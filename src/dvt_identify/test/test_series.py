@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from dvt_identify.data import Checks, Segment, SignalSpec, load_bag_segments, make_segment
-from dvt_identify.description import Description, parse_description
+from dvt_identify.data import Checks, Segment, SignalSpec, load_bag_segments
+from dvt_identify.description import Description
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.metrics import figures
 from dvt_identify.report import build_report, write_report
@@ -22,45 +23,18 @@ from dvt_identify.series import (
     series_keys,
     write_series,
 )
-from dvt_identify.simulation import OEModel
 
-DESC = {
-    "name": "cart",
-    "inputs": [{"name": "force", "topic": "/cart/drive", "field": "effort", "joint": "cart"}],
-    "outputs": [{"name": "v", "topic": "/cart/joint_states", "field": "velocity",
-                 "joint": "cart", "scale": 2.0}],
-    "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                  "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
-                  "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                 "Fv": {"initial": 3.0, "lower": 0.0}}},
-    "candidates": [{"effect": "sensor_offset", "where": "v"}],
-    "preprocess": {"fit_decimate": 1},
-    "fit": {"starts": 1, "refit_starts": 1},
-}
-
-
-def cart_desc() -> Description:
-    return parse_description(DESC, "cart.yaml")
-
-
-def record(desc: Description, name: str, seed: int, n: int = 1500, offset: float = 0.0
-           ) -> Segment:
-    rng = np.random.default_rng(seed)
-    dt = 0.01
-    u = np.repeat(rng.uniform(-5, 5, n // 50 + 1), 50)[:n]
-    t = np.arange(n) * dt
-    clean = make_segment(name, t, u, np.zeros(n), desc.input_names, desc.output_names)
-    y = OEModel(desc.structure).simulate(np.array([2.5, 4.0]), clean, np.zeros(1))
-    y = y + offset + 0.01 * rng.standard_normal(y.shape)
-    return make_segment(name, t, u, y, desc.input_names, desc.output_names)
+SCALE = 2.0  # the speed's scale in the description here (the MCAP series undo and redo it)
 
 
 @pytest.fixture(scope="module")
-def result() -> tuple[IdentificationResult, list[Segment]]:
-    desc = cart_desc()
-    est = [record(desc, "est", 1, offset=0.3)]
-    val = [record(desc, "val", 2, offset=0.3)]
-    test = [record(desc, "test", 3, offset=0.3), record(desc, "test2", 4, 800, offset=0.3)]
+def result(cart_desc: Callable[..., Description], cart_record: Callable[..., Segment]
+           ) -> tuple[IdentificationResult, list[Segment]]:
+    desc = cart_desc(SCALE)
+    est = [cart_record(desc, "est", 1, offset=0.3)]
+    val = [cart_record(desc, "val", 2, offset=0.3)]
+    test = [cart_record(desc, "test", 3, offset=0.3),
+            cart_record(desc, "test2", 4, 800, offset=0.3)]
     res = identify(est, val, desc, LoopConfig(starts=1, refit_starts=1, drift_windows=0))
     res.test = evaluate_test(res.baseline.fit, res.final.fit, test, init_window=20)
     return res, test
@@ -118,12 +92,12 @@ def test_csv_reproduces_the_report_exactly(tmp_path: Path,
 
 
 def test_mcap_bags_carry_the_model_topics(tmp_path: Path,
-                                          result: tuple[IdentificationResult, list[Segment]]
-                                          ) -> None:
+                                          result: tuple[IdentificationResult, list[Segment]],
+                                          cart_desc: Callable[..., Description]) -> None:
     from dvt_model.contract import MODEL_JOINT_STATES, MODEL_RESIDUAL
 
     res, test = result
-    desc = cart_desc()
+    desc = cart_desc(SCALE)
     paths = write_series(collect(res, res.test, test), tmp_path, desc, mcap=True)
     bag = paths["mcap:validation-0"]
     ins = desc.inputs
@@ -138,12 +112,13 @@ def test_mcap_bags_carry_the_model_topics(tmp_path: Path,
     assert np.array_equal(res_[0].y, val.y - res.final.val_pred[0])
 
 
-def test_holdout_split_and_init_window() -> None:
-    desc = cart_desc()
-    seg = record(desc, "est", 1, n=1000)
+def test_holdout_split_and_init_window(cart_desc: Callable[..., Description],
+                                      cart_record: Callable[..., Segment]) -> None:
+    desc = cart_desc(SCALE)
+    seg = cart_record(desc, "est", 1, n=1000)
     fit, sel = holdout_split([seg], 0.3)
     assert fit[0].n == 700 and sel[0].n == 300 and sel[0].name == "est#holdout"
     assert np.array_equal(np.concatenate([fit[0].y, sel[0].y]), seg.y)
     assert sel[0].t[0] == 0.0
     with pytest.raises(Exception, match="too few to hold out"):
-        holdout_split([record(desc, "s", 1, n=100)], 0.3)
+        holdout_split([cart_record(desc, "s", 1, n=100)], 0.3)

@@ -14,13 +14,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from dvt_model.errors import ParameterError
+from dvt_model.presets import read_yaml_setting
 
 MEMBERS_WITH_TORQUE = ("sun", "carrier1", "carrier2", "carrier3")
 """Members whose torque the shafts and splines are sized for."""
@@ -402,23 +400,14 @@ def parse_design(data: Any, source: str = "<mapping>") -> Design:
                   assumptions=tuple(assumptions_raw), printed=printed)
 
 
-def load_design(path: str | Path | None = None) -> Design:
-    """Load a design file; ``None`` = the bundled thesis design (``design/thesis.yaml``).
+def load_design(name_or_path: str | Path | None = None) -> Design:
+    """Load a design: a bundled one by name (``thesis``, from ``design/thesis.yaml``) or a
+    design YAML file by path; ``None`` = the bundled thesis design.
 
     Raises:
-        ParameterError: unreadable file, invalid YAML or invalid content.
+        ParameterError: unknown name, unreadable file, invalid YAML or invalid content.
     """
-    if path is None:
-        source = "thesis.yaml"
-        text = (resources.files("dvt_model.design") / "thesis.yaml").read_text(encoding="utf-8")
-    else:
-        source = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ParameterError(f"{source}: cannot read design file: {exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ParameterError(f"{source}: not valid YAML: {exc}") from exc
+    data, source = read_yaml_setting("thesis" if name_or_path is None else name_or_path,
+                                     what="design", error=ParameterError,
+                                     package="dvt_model.design")
     return parse_design(data, source=source)

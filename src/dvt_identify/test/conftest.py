@@ -1,0 +1,116 @@
+"""Shared toys of the identifier's tests, handed out as fixtures (this folder is not on
+``sys.path`` under ``--import-mode=importlib``, so the test files cannot import a helper module).
+
+The toy is a cart ``M v' = F - Fv v`` (M 2.5 kg, Fv 4 N s/m) under random force steps, its speed
+read with 1 % noise and an optional constant sensor offset, described with one candidate,
+``sensor_offset``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from dvt_identify import pipeline
+from dvt_identify.data import Segment, make_segment
+from dvt_identify.description import Description, parse_description
+from dvt_identify.simulation import OEModel
+
+# the seed of each bag name the traced pipeline reads
+CART_SEEDS = {"est": 1, "val": 2, "test": 3, "est0": 11, "est1": 12}
+
+
+def _cart_spec(scale: float | None = None) -> dict[str, Any]:
+    """The cart's description as a fresh dict; ``scale`` sets the speed's ``scale``."""
+    v: dict[str, Any] = {"name": "v", "topic": "/cart/joint_states", "field": "velocity",
+                         "joint": "cart"}
+    if scale is not None:
+        v["scale"] = scale
+    return {
+        "name": "cart",
+        "inputs": [{"name": "force", "topic": "/cart/drive", "field": "effort",
+                    "joint": "cart"}],
+        "outputs": [v],
+        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
+                      "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
+                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
+                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
+        "candidates": [{"effect": "sensor_offset", "where": "v"}],
+        "preprocess": {"fit_decimate": 1},
+        "fit": {"starts": 1, "refit_starts": 1},
+    }
+
+
+def _cart_desc(scale: float | None = None) -> Description:
+    return parse_description(_cart_spec(scale), "cart.yaml")
+
+
+def _cart_record(desc: Description, name: str, seed: int, n: int = 1500, offset: float = 0.0
+                 ) -> Segment:
+    """The cart (M 2.5, Fv 4) under random force steps, 1 % noise, read with ``offset``
+    [m/s]."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-5, 5, n // 50 + 1), 50)[:n]
+    t = np.arange(n) * 0.01
+    clean = make_segment(name, t, u, np.zeros(n), desc.input_names, desc.output_names)
+    y = OEModel(desc.structure).simulate(np.array([2.5, 4.0]), clean, np.zeros(1))
+    y = y + offset + 0.01 * rng.standard_normal(y.shape)
+    return make_segment(name, t, u, y, desc.input_names, desc.output_names)
+
+
+@pytest.fixture(scope="session")
+def cart_spec() -> Callable[..., dict[str, Any]]:
+    """``cart_spec(scale=None)``: the cart's description as a fresh dict."""
+    return _cart_spec
+
+
+@pytest.fixture(scope="session")
+def cart_desc() -> Callable[..., Description]:
+    """``cart_desc(scale=None)``: the cart's description, parsed."""
+    return _cart_desc
+
+
+@pytest.fixture(scope="session")
+def cart_record() -> Callable[..., Segment]:
+    """``cart_record(desc, name, seed, n=1500, offset=0.0)``: a recording of the cart."""
+    return _cart_record
+
+
+@pytest.fixture
+def traced_pipeline(monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+                    ) -> tuple[list[str], dict[str, float], Path]:
+    """The cart's description file, and ``pipeline`` with its reads and ``identify`` traced in
+    order (``events``). A bag named in ``CART_SEEDS`` reads as the cart recorded with its seed
+    and with the offset ``offsets`` gives its name (0 where none). Returns
+    ``(events, offsets, path)``."""
+    events: list[str] = []
+    offsets: dict[str, float] = {}
+    path = tmp_path / "cart.yaml"
+    path.write_text(yaml.safe_dump(_cart_spec()))
+
+    def load(paths: Sequence[str | Path], desc: Description) -> list[Any]:
+        out = []
+        for b in paths:
+            name = Path(b).name
+            events.append(f"read {name}")
+            out.append(_cart_record(desc, name, CART_SEEDS[name],
+                                    offset=offsets.get(name, 0.0)))
+        return out
+
+    real = pipeline.identify
+
+    def identify(est: Sequence[Any], val: Sequence[Any], *a: Any, **k: Any) -> Any:
+        events.append("identify: " + ",".join(s.name for s in est) + " | "
+                      + ",".join(s.name for s in val))
+        res = real(est, val, *a, **k)
+        events.append("choices made")
+        return res
+
+    monkeypatch.setattr(pipeline, "load_segments", load)
+    monkeypatch.setattr(pipeline, "identify", identify)
+    return events, offsets, path
