@@ -435,3 +435,114 @@ def test_change_detector_wiring(procs, rclpy_context, tmp_path):
     listener.spin_until(lambda: statuses[-1].get("resets") == "1", 5.0, "a detector reset")
     assert statuses[-1]["state"] in ("learning", "settling"), statuses[-1]
     assert node.poll() is None
+
+
+def _call_trigger(listener, service, timeout=20.0):
+    """Call a std_srvs/Trigger ``service`` with a real client; its response (bounded waits)."""
+    from std_srvs.srv import Trigger
+
+    cli = listener.node.create_client(Trigger, service)
+    listener.spin_until(cli.service_is_ready, timeout, f"service {service}")
+    fut = cli.call_async(Trigger.Request())
+    listener.spin_until(fut.done, timeout, f"the answer of {service}")
+    listener.node.destroy_client(cli)
+    return fut.result()
+
+
+def test_reset_detector_service(procs, rclpy_context, tmp_path):
+    """``~/reset_detector`` (std_srvs/Trigger): after the detector learned a reference and
+    raised an alarm (a step in the measured sun-shaft speed), the service clears the reference
+    and the latched alarm (the status goes from WARN/testing to OK/learning at once), the next
+    samples teach it a new reference (no anchor), the reset is logged with the text
+    ``dvt-bench loop`` looks for, and a node whose detector is off refuses with the reason."""
+    from dvt_driver.run.bench_loop import _rearm_time
+    from dvt_model.contract import model_reset_detector_service
+    from dvt_model.node import DETECTOR_STATUS, RESET_DETECTOR_LOG
+
+    seconds, step_at, step = 8.0, 3.5, 2.0  # [s], [s], [rad/s]: 10 x the noise, 30 x per block
+    params = load_parameters("physical")
+    n = int(seconds * 1000)
+    t = np.arange(n) * 1e-3
+    im = 4.0 + 3.0 * np.sign(np.sin(2 * np.pi * 0.7 * t))
+    ib = np.zeros((n, 3))
+    r = HybridModel.from_params(params).simulate(t, im, ib, omega0=(60.0, 12.0))
+    speeds = r.omega + np.random.default_rng(3).normal(0.0, NOISE, r.omega.shape)
+    speeds[t >= step_at, 0] += step
+    stamps = (1_700_000_000 * 10**9 + np.round(t * 1e9)).astype(np.int64)
+    bag = write_run(tmp_path / "run", stamps, speeds, np.column_stack([im, ib]))
+
+    listener = _Listener(rclpy_context)
+    statuses: list[tuple[int, dict[str, str]]] = []
+
+    def on_diag(msg):
+        for st in msg.status:
+            if st.name == DETECTOR_STATUS:
+                level = st.level[0] if isinstance(st.level, bytes) else st.level
+                statuses.append((int(level), {kv.key: kv.value for kv in st.values}))
+
+    listener.node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diag, 50)
+    node = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=1.0",
+                       "-p", "detector.settle_s:=0.2")
+    listener.spin_until(lambda: listener.node.count_publishers(MODEL_RESIDUAL) > 0,
+                        20.0, "model node publishers")
+
+    def replay(*args):
+        proc = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1",
+                           *args)
+        listener.spin_until(lambda: proc.poll() is not None, 60.0, f"replay {args}")
+        assert proc.returncode == 0, procs.log(proc)
+
+    def latest(pred, timeout, what):
+        return listener.spin_until(
+            lambda: next((s for s in reversed(statuses) if pred(*s)), None), timeout,
+            f"{what} (last detector status: {statuses[-1] if statuses else None})")
+
+    # the clean part: settle, learn, test
+    replay("--duration", "3.0")
+    latest(lambda lv, v: v.get("state") == "testing" and int(v.get("tested", "0")) > 0, 15.0,
+           "the detector testing")
+    # the step: an alarm, latched as WARN for ALARM_HOLD_S
+    replay("--start", "3.0", "--duration", "2.0")
+    _, warn = latest(lambda lv, v: lv == rosutil.WARN and int(v.get("alarms", "0")) >= 1,
+                     15.0, "the alarm (WARN)")
+    alarms = warn["alarms"]
+    assert warn["requested_resets"] == "0", warn
+
+    answer = _call_trigger(listener, model_reset_detector_service())
+    assert answer.success, answer.message
+    assert answer.message.startswith(RESET_DETECTOR_LOG), answer.message
+    assert "reference" in answer.message and "the latched alarm" in answer.message, \
+        answer.message
+    level, after = latest(lambda lv, v: v.get("requested_resets") == "1", 10.0,
+                          "a status after the reset")
+    # the reference, the CUSUMs and the alarm hold are gone: learning, OK, no sigma learned
+    assert level == rosutil.OK, (level, after)
+    assert after["state"] == "learning" and after["learn_progress"] == "0.00", after
+    assert "sun_shaft.sigma_rad_s" not in after and after["alarms"] == alarms, after
+    assert after["resets"] == "0" and after["anchor_restarts"] == "1", after
+
+    # the next samples (stamps continue: no anchor) teach it a new reference
+    replay("--start", "5.0")
+    _, again = latest(lambda lv, v: v.get("requested_resets") == "1"
+                      and v.get("state") == "testing", 15.0, "testing on the new reference")
+    assert again["learn_progress"] == "1.00" and "sun_shaft.sigma_rad_s" in again, again
+    assert again["anchor_restarts"] == "1" and again["alarms"] == alarms, again
+    assert node.poll() is None, procs.log(node)
+
+    # logged once, with the text dvt-bench loop finds the launcher's re-arm by
+    log = procs.log(node)
+    assert log.count(RESET_DETECTOR_LOG) == 1, log[-3000:]
+    logdir = tmp_path / "launch"
+    logdir.mkdir()
+    (logdir / "model.log").write_text(log)
+    rearmed = _rearm_time(logdir)
+    assert rearmed is not None and abs(rearmed - time.time()) < 300.0, (rearmed, log[-3000:])
+
+    # detector off: refused, naming the service and the reason
+    off = procs.start("dvt_model_node", "--ros-args", "-p", "detector.enabled:=false",
+                      "-r", "__node:=dvt_model_off")
+    refused = _call_trigger(listener, model_reset_detector_service("dvt_model_off"))
+    assert not refused.success
+    assert "/dvt_model_off/reset_detector" in refused.message, refused.message
+    assert "detector.enabled is false" in refused.message, refused.message
+    assert off.poll() is None, procs.log(off)

@@ -79,6 +79,16 @@ MODEL_NODE = "dvt_model"
 IDENTIFY_NODE = "dvt_identify"
 RECORDER_NODE = "dvt_recorder"
 
+SRV_MODEL_RESET_DETECTOR = "~/reset_detector"
+"""The model node's service (``std_srvs/srv/Trigger``, private name) that makes its change
+detector learn anew (:func:`model_reset_detector_service`)."""
+
+
+def model_reset_detector_service(node_name: str = MODEL_NODE) -> str:
+    """Absolute name of :data:`SRV_MODEL_RESET_DETECTOR` of the model node ``node_name`` (in
+    the root namespace), e.g. ``/dvt_model/reset_detector``."""
+    return f"/{node_name.strip('/')}/{SRV_MODEL_RESET_DETECTOR.removeprefix('~/')}"
+
 
 # --------------------------------------------------------------------------------- QoS as data
 @dataclass(frozen=True)

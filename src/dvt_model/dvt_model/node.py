@@ -50,6 +50,18 @@ learning/testing, ``alarms``, ``phi``, ``k``, ``h``, the CUSUMs per output; leve
 (a push or a rollback) resets the detector: it learns the new model's residual first.
 ``detector.enabled:=false`` turns it off.
 
+Service ``~/reset_detector`` (:data:`~dvt_model.contract.SRV_MODEL_RESET_DETECTOR`,
+``std_srvs/srv/Trigger``; ``/dvt_model/reset_detector`` by default): the detector forgets its
+learned reference, its CUSUMs, the residual block in progress and the latched alarm (the WARN
+hold of the last alarm), and learns a new reference from the next samples (after a settling in
+progress, if any). The model is not touched (no re-anchor). The answer is ``success=True`` with
+a message saying what was reset, or ``success=False`` with the reason when the detector is off
+(``detector.enabled:=false``); every request is logged (a reset at INFO, starting with
+:data:`RESET_DETECTOR_LOG`). The node is a plain node, not a lifecycle node: it answers whenever
+it runs. ``dvt-launch`` calls it to re-arm the detector once the machine moves
+(:func:`dvt_driver.run.launch._rearm`); ``requested_resets`` in the detector's status counts
+these resets (``resets`` the ones by model changes).
+
 Latency (issue #11; ``dvt-bench model``): the two input streams are taken raw (CDR bytes,
 :class:`JointStateReader`: the layout of the last message is cached, a sample costs two
 ``struct`` unpacks) and the prediction and residual are published raw
@@ -73,7 +85,7 @@ import gc
 import struct
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import rclpy
@@ -84,6 +96,7 @@ from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from dvt_model import rosutil
 from dvt_model.config import DetectorSetup, build_predictor, detector_config
@@ -101,7 +114,9 @@ from dvt_model.contract import (
     MODEL_PARAMETERS,
     MODEL_RESIDUAL,
     SPEED_NAMES,
+    SRV_MODEL_RESET_DETECTOR,
     NodeParam,
+    model_reset_detector_service,
     short_repr,
 )
 from dvt_model.detect import Alarm, ChangeDetector, reference_from_window
@@ -112,10 +127,15 @@ from dvt_model.recording.pairing import LivePairer
 
 _REFUSABLE = (DvtModelError, ValueError, TypeError, ArithmeticError, np.linalg.LinAlgError)
 """What a parameter check may raise; each becomes a counted refusal, never a crash."""
+ResetCause = Literal["request", "model", "anchor"]
+"""Why the detector is reset (:meth:`ModelNode._reset_detector`)."""
 ALARM_HOLD_S = 10.0
 """The periodic detector status stays WARN this long after an alarm [s, node clock]."""
 DETECTOR_STATUS = f"{MODEL_NODE}: change detector"
 """Name of the detector's ``DiagnosticStatus``."""
+RESET_DETECTOR_LOG = "change detector reset on request"
+"""Start of the INFO log line of every reset through :data:`SRV_MODEL_RESET_DETECTOR` (the
+text ``dvt-bench loop`` looks for to find the launcher's re-arm)."""
 
 
 def _warm_up(setup: DetectorSetup) -> None:
@@ -324,7 +344,8 @@ class ModelNode(Node):
             _warm_up(setup)
             self.blocks = ResidualBlocks(setup.block, len(SPEED_NAMES),
                                          setup.config.max_gap_s)
-        self.detector_resets = 0
+        self.detector_resets = 0  # resets by accepted model changes (push, rollback)
+        self.requested_resets = 0  # resets through SRV_MODEL_RESET_DETECTOR
         self._alarm_at: float | None = None  # node clock [s] of the last alarm
         self.rejected = 0
         self.last_refusal = ""
@@ -349,6 +370,7 @@ class ModelNode(Node):
         self.create_subscription(JointState, CURRENTS, lambda m: self._on_msg(m, 1),
                                  rosutil.SENSOR_QOS, raw=True)
         self.create_timer(1.0, self._diagnostics)
+        self.create_service(Trigger, SRV_MODEL_RESET_DETECTOR, self._on_reset_detector)
         self.get_logger().info(f"model: {self.model_desc}, mode {self.predictor.mode}, change "
                                "detector " + ("on" if self.detector is not None else "off"))
 
@@ -399,9 +421,8 @@ class ModelNode(Node):
         self._guard_before += self.predictor.guard_reanchors
         self.predictor, self.model_desc = predictor, desc
         self._clear_next = clear
-        if self.detector is not None:  # a push or rollback: learn the new model's residual
-            self.detector.reset()
-            self.detector_resets += 1
+        # a push or rollback: learn the new model's residual (the last alarm's WARN hold stays)
+        self._reset_detector("model")
         self.get_logger().info(f"model changed: {desc}, mode {predictor.mode}")
         return SetParametersResult(successful=True)
 
@@ -461,12 +482,62 @@ class ModelNode(Node):
                     self._on_alarm(alarm)
 
     def _restart_detector(self, stamp: float) -> None:
-        """The model was anchored to the measurement: wait ``settle_s``, then learn anew."""
-        if self.detector is not None and self.blocks is not None:
-            self.detector.reset()
-            self.blocks.clear()
+        """The model was anchored to the measurement at ``stamp`` [s]: wait ``settle_s``, then
+        learn anew."""
+        if self._reset_detector("anchor") is not None:
             self._settle_until = stamp + self.settle_s
+
+    def _reset_detector(self, cause: ResetCause) -> str | None:
+        """Make the detector learn anew from the next samples (the one reset path of the node):
+        forget its reference and CUSUMs (:meth:`ChangeDetector.reset`) and the residual block
+        in progress. ``cause``: ``"request"`` (:data:`SRV_MODEL_RESET_DETECTOR`; also ends the
+        latched alarm, the WARN hold of :data:`ALARM_HOLD_S`; counted as ``requested_resets``),
+        ``"model"`` (an accepted model change; ``resets``) or ``"anchor"`` (an anchor of the
+        model; ``anchor_restarts``, the caller then sets the settling). A settling in progress
+        (``detector.settle_s`` after an anchor) is kept.
+
+        Returns what was reset (one line), or ``None`` when the detector is off.
+        """
+        det, blocks = self.detector, self.blocks
+        if det is None or blocks is None:
+            return None
+        if det.learning:
+            parts = [f"the reference being learned ({100.0 * det.learn_progress:.0f} % of it)"]
+        else:
+            parts = ["the learned reference", "the CUSUMs"]
+        det.reset()
+        blocks.clear()
+        parts.append("the residual block in progress")
+        if cause == "request":
+            if self._alarm_at is not None:
+                parts.append("the latched alarm")
+            self._alarm_at = None
+            self.requested_resets += 1
+        elif cause == "model":
+            self.detector_resets += 1
+        else:
             self.anchor_restarts += 1
+        settling = self._last_stamp < self._settle_until
+        return (f"forgot {', '.join(parts)}; learns a new reference "
+                f"({det.config.learn_s:g} s of residual) from the next samples"
+                + (" once the settling after the last anchor ends" if settling else ""))
+
+    def _on_reset_detector(self, request: Trigger.Request,
+                           response: Trigger.Response) -> Trigger.Response:
+        """:data:`SRV_MODEL_RESET_DETECTOR`: reset the detector (:meth:`_reset_detector`) and
+        say so."""
+        service = model_reset_detector_service(self.get_fully_qualified_name())
+        done = self._reset_detector("request")
+        if done is None:
+            response.success = False
+            response.message = (f"{service} refused: the change detector is off "
+                                "(detector.enabled is false), nothing to reset")
+            self.get_logger().warning(response.message)
+            return response
+        response.success = True
+        response.message = f"{RESET_DETECTOR_LOG} (reset {self.requested_resets}): {done}"
+        self.get_logger().info(response.message)
+        return response
 
     def _on_alarm(self, alarm: Alarm) -> None:
         """Publish an alarm on the change topic and as WARN on ``/diagnostics``."""
@@ -485,6 +556,7 @@ class ModelNode(Node):
             return {"state": "off"}
         values = det.status()
         values["resets"] = str(self.detector_resets)
+        values["requested_resets"] = str(self.requested_resets)
         values["anchor_restarts"] = str(self.anchor_restarts)
         if det.learning and self._last_stamp < self._settle_until:
             values["state"] = "settling"

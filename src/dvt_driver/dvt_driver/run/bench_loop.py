@@ -230,12 +230,17 @@ def _read_ring(ring: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int
 
 
 def _rearm_time(logdir: Path) -> float | None:
-    """Host time [s] of the model node's first parameter change (the launcher's re-arm)."""
+    """Host time [s] of the launcher's re-arm: the model node's first log line of a reset
+    through its ``reset_detector`` service (:data:`dvt_model.node.RESET_DETECTOR_LOG`) in
+    ``<logdir>/model.log``; ``None`` without one."""
+    from dvt_model.node import RESET_DETECTOR_LOG
+
     path = logdir / "model.log"
     if not path.exists():
         return None
+    pattern = re.compile(r"\[(\d+\.\d+)\] \[[^]]*\]: " + re.escape(RESET_DETECTOR_LOG))
     for line in path.read_text(errors="replace").splitlines():
-        m = re.search(r"\[(\d+\.\d+)\] \[[^]]*\]: model changed", line)
+        m = pattern.search(line)
         if m:
             return float(m.group(1))
     return None
@@ -265,6 +270,9 @@ def analyse_episode(logdir: Path, learn_s: float = 10.0) -> EpisodeRun:
     rearmed = _rearm_time(logdir)
     run = EpisodeRun(bins, rms, counts, alarms, change, rec, latency, len(dropped), rearmed)
     f: dict[str, Any] = {"change_unix_s": change, "episode": None}
+    # a re-arm (a reset on request, no anchor) learns at once, or once the settling after the
+    # node's first anchor ends (the ring starts after the re-arm: that first sample is not in
+    # it): testing starts at the latest settle + learn after the re-arm
     tested_from = (rearmed if rearmed is not None else st[0]) + DETECTOR_SETTLE_S + learn_s
     if change is not None:
         pre = (bins >= max(tested_from - learn_s, change - 30.0)) & (bins + 1 <= change)

@@ -45,10 +45,11 @@ Usage::
    items (e.g. ``supervisor.min_post_change_s:=20``); ready when it subscribes to
    ``/dvt/model/change`` and ``/dvt/model/residual``. With an experiment, once it moves the
    machine (its first ``phase`` line; before the ring and the identifier start) the launcher
-   re-arms the model node's change detector (it sets the model node's ``params`` to the value
-   it has: every accepted parameter change makes the detector learn anew), so that the
-   reference residual is learned on the running machine and not at standstill (a reference
-   learned at rest alarms when the motion starts). Each new episode report is printed
+   re-arms the model node's change detector (it calls the model node's
+   ``/dvt_model/reset_detector`` service, std_srvs/Trigger: the detector forgets its reference
+   and learns anew from the next samples), so that the reference residual is learned on the
+   running machine and not at standstill (a reference learned at rest alarms when the motion
+   starts). Each new episode report is printed
    (``episode N: OUTCOME ...``); ``--episodes N`` ends the run after the N-th;
 
 6. ``dvt-foxglove`` if ``--foxglove`` (the Foxglove WebSocket bridge, ``docs/foxglove.md``;
@@ -134,6 +135,7 @@ from dvt_model.contract import (
     RECORDER_SNAPSHOT_REQUEST,
     RECORDER_SNAPSHOT_RESULT,
     SAMPLE_TOPICS,
+    model_reset_detector_service,
 )
 
 BIN = Path(sys.executable).parent
@@ -151,9 +153,9 @@ SUPERVISE_RING_MINUTES = 10.0
 """Ring length ``--supervise`` implies without ``--ring-minutes`` [min]: the supervisor's
 default wait (60 s of post-change data) plus a refit, with margin (``docs/loop.md`` §4)."""
 REARM_TIMEOUT = 30.0
-"""Longest wait for the experiment's first phase and for the model node's answer when the
-launcher re-arms the change detector [s] (a loaded model node answers its parameter services
-after its queued samples)."""
+"""Longest wait for the experiment's first phase, and for the model node's reset service to
+appear and answer, when the launcher re-arms the change detector [s] (a loaded model node
+answers its services after its queued samples)."""
 IDENTIFY_DIR = "identify"
 """Sub-directory of the log directory that ``--supervise`` gives the identifier as
 ``output_dir`` (episode reports in ``<log dir>/identify/episodes``)."""
@@ -349,41 +351,61 @@ class Monitor:
             infos = self.node.get_publishers_info_by_topic(topic)
         return any(i.node_name == node_name for i in infos)
 
-    def rearm_detector(self, model_node: str, timeout: float) -> str:
-        """Make the model node's change detector learn anew: set its ``params`` to the value it
-        has (every accepted parameter change resets the detector and re-anchors the model).
+    def rearm_detector(self, model_node: str, timeout: float,
+                       interrupted: Callable[[], bool] = lambda: False) -> str:
+        """Make the model node's change detector learn anew: call its reset service
+        (``/<model_node>/reset_detector``, std_srvs/srv/Trigger,
+        :data:`dvt_model.contract.SRV_MODEL_RESET_DETECTOR`).
 
-        Returns the value set. Raises :class:`LaunchError` naming the node, the step and
-        ``timeout`` [s] when it does not answer or refuses.
+        Waits at most ``timeout`` [s] in all for the service to appear and answer. Returns the
+        node's answer (what was reset). Raises :class:`LaunchError` naming the node and the
+        service when the service does not appear or answer within ``timeout``, or refuses
+        (``success=False``, e.g. the detector is off: its reason), and
+        :class:`LaunchInterruptedError` as soon as ``interrupted()`` is true (a signal).
         """
-        from rclpy.parameter import Parameter
-        from rclpy.parameter_client import AsyncParameterClient
+        from std_srvs.srv import Trigger
 
-        with self._lock:
-            client = AsyncParameterClient(self.node, model_node)
+        service = model_reset_detector_service(model_node)
         deadline = time.monotonic() + timeout
-        if not client.wait_for_services(timeout_sec=min(timeout, 10.0)):
-            raise LaunchError(f"model node {model_node!r} has no parameter services within "
-                              f"{min(timeout, 10.0):g} s")
+        with self._lock:
+            client = self.node.create_client(Trigger, service)
 
-        def wait(future: Any, what: str) -> Any:
-            while not future.done():
+        def ready() -> bool:
+            with self._lock:
+                return bool(client.service_is_ready())
+
+        def check_interrupted() -> None:
+            if interrupted():
+                raise LaunchInterruptedError(f"interrupted while calling {service} of model "
+                                             f"node {model_node!r}")
+
+        try:
+            while not ready():
+                check_interrupted()
                 if time.monotonic() > deadline:
-                    raise LaunchError(f"model node {model_node!r} did not answer {what} "
+                    raise LaunchError(f"model node {model_node!r} offers no service {service} "
+                                      f"within {timeout:g} s (is it running under that name?)")
+                time.sleep(0.05)
+            with self._lock:
+                future = client.call_async(Trigger.Request())
+            while not future.done():
+                check_interrupted()
+                if time.monotonic() > deadline:
+                    raise LaunchError(f"model node {model_node!r} did not answer {service} "
                                       f"within {timeout:g} s")
                 time.sleep(0.02)
-            return future.result()
-
-        with self._lock:
-            got = client.get_parameters(["params"])
-        value = str(wait(got, "get_parameters(params)").values[0].string_value)
-        with self._lock:
-            put = client.set_parameters([Parameter("params", Parameter.Type.STRING, value)])
-        result = wait(put, f"set_parameters(params:={value})").results[0]
-        if not result.successful:
-            raise LaunchError(f"model node {model_node!r} refused params:={value!r}: "
-                              f"{result.reason}")
-        return value
+            failure = future.exception()
+            answer = future.result() if failure is None else None
+            if answer is None:
+                raise LaunchError(f"model node {model_node!r}: the call of {service} failed "
+                                  f"({failure!r})")
+            if not answer.success:
+                raise LaunchError(f"model node {model_node!r} refused {service}: "
+                                  f"{answer.message}")
+            return str(answer.message)
+        finally:
+            with self._lock:
+                self.node.destroy_client(client)
 
     def quiet(self) -> None:
         """Drop the sample subscriptions (readiness is established)."""
@@ -437,16 +459,19 @@ def _rearm(exp: Child, monitor: Monitor, kids: Children, say: Callable[[str], No
     """Once the experiment moves the machine (its first ``phase`` line), make the model node's
     change detector learn its reference anew (:meth:`Monitor.rearm_detector`): a reference
     learned at standstill alarms as soon as the motion starts. Done before the ring and the
-    identifier start, so that it falls inside the detector's first reference window (settle +
-    learn after the model node's first sample); a failure is a warning (the loop still runs)."""
+    identifier start, so that neither sees an alarm of the standstill reference; the detector
+    learns anew from the next samples (the model is not re-anchored). A failure (no answer
+    within :data:`REARM_TIMEOUT`, a refusal) is a warning naming the node and the service (the
+    loop still runs)."""
     try:
         kids.wait_until("the experiment's first phase", lambda: "phase " in exp.tail(20000)
                         or not exp.alive(), REARM_TIMEOUT)
         if not exp.alive():
             return
-        value = monitor.rearm_detector(MODEL_NODE, REARM_TIMEOUT)
-        say(f"experiment moving: the model node's change detector re-armed (params:={value}; "
-            "it learns its reference on the running machine)")
+        answer = monitor.rearm_detector(MODEL_NODE, REARM_TIMEOUT,
+                                        interrupted=lambda: bool(kids.stop))
+        say(f"experiment moving: the model node's change detector re-armed (it learns its "
+            f"reference on the running machine): {answer}")
     except LaunchInterruptedError:
         raise
     except LaunchError as exc:
