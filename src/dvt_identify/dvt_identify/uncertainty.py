@@ -231,7 +231,13 @@ def diebold_mariano(old: Sequence[ArrayLike], new: Sequence[ArrayLike],
 
     The loss of a time step is the weighted squared error summed over the outputs (weights
     (ny,), e.g. 1 / output variance); the mean difference is tested with its Bartlett HAC
-    variance (segments windowed separately).
+    variance (segments windowed separately). The bandwidth is Andrews' AR(1) plug-in
+    (:func:`bartlett_bandwidth`) but at least ``sqrt(N)`` of the shortest segment (and at most
+    a quarter of it): the plug-in follows the loss difference's first-order correlation and
+    misses a slower tail. Measured on a demo run (1 kHz, 38 363 validation samples), a spurious
+    0.008 N m gravity term on a plant without one had p = 0.0023 with the plug-in's 53 samples
+    while its loss difference still correlated 0.06 at 100 samples; with 196 samples p = 0.019
+    (and 0.03 at 400-1000), while the real Coulomb frictions of the same run stay at p < 1e-8.
 
     Raises:
         UncertaintyError: segment counts or shapes differ.
@@ -263,7 +269,8 @@ def diebold_mariano(old: Sequence[ArrayLike], new: Sequence[ArrayLike],
     n = d_all.size
     gain = float(d_all.mean())
     centred = [d - gain for d in diffs]
-    L = bartlett_bandwidth(centred)
+    shortest = min(d.shape[0] for d in diffs)
+    L = max(bartlett_bandwidth(centred), min(math.ceil(math.sqrt(shortest)), shortest // 4))
     lrv = float(long_run_covariance(centred, L)[0, 0])
     se = math.sqrt(max(lrv, 0.0)) / n  # lrv sums over the n samples: var(mean) = lrv / n^2
     if se > 0.0:
