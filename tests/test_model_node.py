@@ -456,8 +456,8 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
     samples teach it a new reference (no anchor), the reset is logged with the text
     ``dvt-bench loop`` looks for, and a node whose detector is off refuses with the reason."""
     from dvt_driver.run.bench_loop import _rearm_time
-    from dvt_model.contract import model_reset_detector_service
-    from dvt_model.node import DETECTOR_STATUS, RESET_DETECTOR_LOG
+    from dvt_model.contract import RESET_DETECTOR_LOG, model_reset_detector_service
+    from dvt_model.node import DETECTOR_STATUS
 
     seconds, step_at, step = 8.0, 3.5, 2.0  # [s], [s], [rad/s]: 10 x the noise, 30 x per block
     params = load_parameters("physical")

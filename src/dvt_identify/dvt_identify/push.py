@@ -171,7 +171,7 @@ def _effect_terms(pairs: Sequence[tuple[Effect, Any]], ctx: _Mapping
     for eff, p in pairs:
         n_skipped = len(skipped)
         _effect_term(eff, p, ctx, terms, skipped)
-        if len(skipped) > n_skipped and _node_input_transform(eff, p):
+        if len(skipped) > n_skipped and eff.node_input_transform:
             # not pushed: the node's terms on this input would see the raw current
             ctx.transformed.setdefault(eff.where, eff.label())
     return terms, skipped
@@ -282,7 +282,7 @@ def _transformed_inputs(pairs: Sequence[tuple[Effect, Any]], inputs: Sequence[st
                          for j in range(nu)]) if nu else np.zeros((n, 0))
     out: dict[str, str] = {}
     for eff, p in pairs:
-        if _node_input_transform(eff, p):
+        if eff.node_input_transform:
             continue  # the node applies it to the raw current too
         with np.errstate(all="ignore"):
             ut = eff.input_transform(np.asarray(p, dtype=float), u, dt)
@@ -293,13 +293,6 @@ def _transformed_inputs(pairs: Sequence[tuple[Effect, Any]], inputs: Sequence[st
             out.setdefault(inputs[int(j)], eff.label())
         u = ut
     return out
-
-
-def _node_input_transform(eff: Effect, p: Any) -> bool:
-    """Whether the model node applies ``eff``'s input transform itself (its terms include a
-    ``dead_zone``, which the node applies to the current before the model sees it)."""
-    terms = eff.model_terms(np.asarray(p, dtype=float), []) or []
-    return any(t.get("kind") == "dead_zone" for t in terms)
 
 
 def _angle_source(segments: Sequence[Any]) -> str:

@@ -12,6 +12,7 @@ import pytest
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import load_description
 from dvt_identify.effects import Effect, make_effect
+from dvt_identify.effects.backlash import Backlash
 from dvt_identify.effects.base import SegmentView
 from dvt_identify.effects.position import LibTerm, Unlisted
 from dvt_identify.errors import PushError
@@ -194,3 +195,48 @@ def test_members_and_outputs_are_reordered_to_the_nodes_speeds() -> None:
                                   "angle": [-1.0, 2.0], "k": 1.0, "input": "drive_motor"}
     term, _ = _node_term({"kind": "gain", "output": 0, "gain": 0.1}, ctx)
     assert term == {"kind": "gain", "output": 1, "gain": 0.1}
+
+
+# -- backlash: a dead zone on an input, play in a compliant spline on an output ------------
+
+def test_dead_zone_is_pushed_on_the_nodes_current_with_the_terms_on_that_input() -> None:
+    zone = _eff("backlash", "motor", "_m")
+    assert isinstance(zone, Backlash)
+    lib = _eff("unlisted", "carrier3", "", orders=[1.0])
+    assert isinstance(lib, Unlisted)
+    prod = lib.subset([lib.terms.index(LibTerm("sign", "", 0.0, 0))], np.array([0.1]))
+    push = model_node_parameters(_stage([zone, prod], {"delta_m": 0.4,
+                                                       prod.params[0].name: 0.1}, None))
+    terms = json.loads(push.parameters["effects"])
+    assert terms[0] == {"kind": "dead_zone", "input": "drive_motor", "delta": 0.4}
+    # the node applies the zone to the current first: the input term sees what it saw here
+    assert terms[1]["kind"] == "library" and terms[1]["input"] == "drive_motor"
+    assert push.skipped == []
+    assert parse_terms(terms).dead_zones == (0.4, 0.0, 0.0, 0.0)
+
+
+def test_a_dead_zone_behind_another_input_transform_is_not_pushed_nor_its_input_terms() -> None:
+    lag = _eff("brake_engagement", "brake1", "")
+    zone = _eff("backlash", "brake1", "_b")
+    lib = _eff("unlisted", "carrier3", "", orders=[1.0], inputs=["brake1"])
+    assert isinstance(lib, Unlisted)
+    prod = lib.subset([lib.terms.index(LibTerm("sign", "", 0.0, 1))], np.array([0.1]))
+    values = {lag.params[0].name: 0.02, "delta_b": 0.3, prod.params[0].name: 0.1}
+    push = model_node_parameters(_stage([lag, zone, prod], values, None),
+                                 n_model_effects=1)
+    assert json.loads(push.parameters["effects"]) == []
+    assert push.skipped[0] == ("backlash@brake1 (its input brake1 is also transformed by "
+                               "brake_engagement@brake1 in the identified model; the model node "
+                               "applies a dead zone to the raw current)")
+    assert push.skipped[1].startswith(f"{prod.label()} (its input brake1 is transformed by "
+                                      "brake_engagement@brake1")
+
+
+def test_compliant_backlash_is_pushed_as_spline_play() -> None:
+    eff = _eff("backlash", "carrier3", "_c", compliant=True)
+    names = [s.name for s in eff.params]
+    push = model_node_parameters(_stage([eff], dict(zip(names, (0.02, 380.0, 0.1), strict=True)),
+                                        None))
+    assert json.loads(push.parameters["effects"]) == [
+        {"kind": "spline_play", "output": 1, "gap": 0.02, "wn": 380.0, "zeta": 0.1}]
+    assert push.skipped == []

@@ -90,6 +90,12 @@ def model_reset_detector_service(node_name: str = MODEL_NODE) -> str:
     return f"/{node_name.strip('/')}/{SRV_MODEL_RESET_DETECTOR.removeprefix('~/')}"
 
 
+RESET_DETECTOR_LOG = "change detector reset on request"
+"""Start of the model node's INFO log line (and service answer) of every reset through
+:data:`SRV_MODEL_RESET_DETECTOR` (the text ``dvt-bench loop`` looks for in the node's log to
+find the launcher's re-arm)."""
+
+
 # --------------------------------------------------------------------------------- QoS as data
 @dataclass(frozen=True)
 class QosSpec:

@@ -57,10 +57,10 @@ hold of the last alarm), and learns a new reference from the next samples (after
 progress, if any). The model is not touched (no re-anchor). The answer is ``success=True`` with
 a message saying what was reset, or ``success=False`` with the reason when the detector is off
 (``detector.enabled:=false``); every request is logged (a reset at INFO, starting with
-:data:`RESET_DETECTOR_LOG`). The node is a plain node, not a lifecycle node: it answers whenever
-it runs. ``dvt-launch`` calls it to re-arm the detector once the machine moves
-(:func:`dvt_driver.run.launch._rearm`); ``requested_resets`` in the detector's status counts
-these resets (``resets`` the ones by model changes).
+:data:`~dvt_model.contract.RESET_DETECTOR_LOG`). The node is a plain node, not a lifecycle node:
+it answers whenever it runs. ``dvt-launch`` calls it to re-arm the detector once the machine
+moves (:func:`dvt_driver.run.launch._rearm`); ``requested_resets`` in the detector's status
+counts these resets (``resets`` the ones by model changes).
 
 Latency (issue #11; ``dvt-bench model``): the two input streams are taken raw (CDR bytes,
 :class:`JointStateReader`: the layout of the last message is cached, a sample costs two
@@ -113,6 +113,7 @@ from dvt_model.contract import (
     MODEL_NODE,
     MODEL_PARAMETERS,
     MODEL_RESIDUAL,
+    RESET_DETECTOR_LOG,
     SPEED_NAMES,
     SRV_MODEL_RESET_DETECTOR,
     NodeParam,
@@ -133,9 +134,6 @@ ALARM_HOLD_S = 10.0
 """The periodic detector status stays WARN this long after an alarm [s, node clock]."""
 DETECTOR_STATUS = f"{MODEL_NODE}: change detector"
 """Name of the detector's ``DiagnosticStatus``."""
-RESET_DETECTOR_LOG = "change detector reset on request"
-"""Start of the INFO log line of every reset through :data:`SRV_MODEL_RESET_DETECTOR` (the
-text ``dvt-bench loop`` looks for to find the launcher's re-arm)."""
 
 
 def _warm_up(setup: DetectorSetup) -> None:

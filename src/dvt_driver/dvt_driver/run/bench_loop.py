@@ -47,7 +47,13 @@ from typing import Any
 import numpy as np
 import yaml
 
-from dvt_model.contract import JOINT_STATES, MODEL_CHANGE, MODEL_RESIDUAL, SPEED_NAMES
+from dvt_model.contract import (
+    JOINT_STATES,
+    MODEL_CHANGE,
+    MODEL_RESIDUAL,
+    RESET_DETECTOR_LOG,
+    SPEED_NAMES,
+)
 
 BIN = Path(sys.executable).parent
 
@@ -231,10 +237,8 @@ def _read_ring(ring: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int
 
 def _rearm_time(logdir: Path) -> float | None:
     """Host time [s] of the launcher's re-arm: the model node's first log line of a reset
-    through its ``reset_detector`` service (:data:`dvt_model.node.RESET_DETECTOR_LOG`) in
+    through its ``reset_detector`` service (:data:`dvt_model.contract.RESET_DETECTOR_LOG`) in
     ``<logdir>/model.log``; ``None`` without one."""
-    from dvt_model.node import RESET_DETECTOR_LOG
-
     path = logdir / "model.log"
     if not path.exists():
         return None

@@ -43,6 +43,7 @@ class Backlash(Effect):
     """
 
     name = "backlash"
+    node_input_transform = True
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:

@@ -252,6 +252,9 @@ class Effect:
             input ``brake1..3`` sets with its first parameter (which carries the same name).
         no_term: why the model node cannot represent the effect (``""``: it can,
             see :meth:`model_term`).
+        node_input_transform: the model node applies the effect's input transform itself, to
+            the raw current before its model sees it (a ``dead_zone`` term): the push does not
+            count it as an input transform the node's input terms would miss.
         global_map: a non-local output map (sign-blind, saturation) that the baseline fit can
             absorb so that no local score sees it: the loop refits it when its
             :meth:`scoring_evidence` reports ``signature: True`` (a data signature a reader
@@ -270,6 +273,7 @@ class Effect:
     band_parameter: ClassVar[str | None] = None
     no_term: ClassVar[str] = "the model node has no such term"
     global_map: ClassVar[bool] = False
+    node_input_transform: ClassVar[bool] = False
     where: str = ""
     params: tuple[ParamSpec, ...] = ()
     member: Array | None = None
