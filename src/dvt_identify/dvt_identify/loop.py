@@ -22,10 +22,10 @@
    (where a fixed 0.1-point threshold rejected a real 0.02-point windage), and a gain within the
    scatter of a coloured residual does not. Up to
    ``max_tries_per_round`` significant candidates are refitted per round, strongest score first;
-   of those that pass, the simplest one that is as good on validation as the best one is
-   accepted (:func:`choose`: a local score can misjudge a large effect, the refit cannot; two
-   laws that fit the data equally well are told apart by parsimony, not by a difference within
-   the noise). Repeat until a round accepts nothing.
+   of those that pass, the simplest one that is as good on validation as the one with the largest
+   LR is accepted (:func:`choose`: a local score can misjudge a large effect, the refit cannot;
+   and two laws that fit the data equally well are told apart by parsimony, not by a
+   likelihood difference within the noise). Repeat until a round accepts nothing.
 
 With coloured residuals LM and LR overstate significance (they assume white errors), which is why
 acceptance also needs the validation test (its variance is HAC, so colour does not fool it).
@@ -881,40 +881,27 @@ class Choice:
 
     Attributes:
         chosen: the trial to accept.
-        reference: the passing trial with the smallest validation loss (the reference of the
-            tie test).
-        tied: the passing trials as good on validation as ``reference`` (it included), in
+        largest_lr: the passing trial with the largest LR (the reference of the tie test).
+        tied: the passing trials as good on validation as ``largest_lr`` (it included), in
             input order.
         comparisons: for each passing trial, in input order, the Diebold-Mariano test of
-            ``reference``'s validation error against the trial's (:func:`validation_test`
-            with the trial as the old model; ``None`` for ``reference`` itself).
+            ``largest_lr``'s validation error against the trial's (:func:`validation_test`
+            with the trial as the old model; ``None`` for ``largest_lr`` itself).
         losers: every other passing trial, in input order, with why it lost (a clause that
             reads after "passes (...) but").
     """
 
     chosen: Decision
-    reference: Decision
+    largest_lr: Decision
     tied: list[Decision]
     comparisons: list[Comparison | None]
     losers: list[tuple[Decision, str]]
 
     @property
     def p_values(self) -> list[float]:
-        """One-sided p-value of ``reference``'s validation error being smaller than each
-        trial's, in input order (1 for ``reference`` itself)."""
+        """One-sided p-value of ``largest_lr``'s validation error being smaller than each
+        trial's, in input order (1 for ``largest_lr`` itself)."""
         return [1.0 if c is None else c.p_value for c in self.comparisons]
-
-
-def validation_loss(stage: Stage, val: Sequence[Segment], weights: Array) -> float:
-    """Mean validation loss of ``stage`` per sample: the squared validation error of each
-    output over ``weights_j^2`` (the validation test's loss), summed over the outputs."""
-    total = 0.0
-    count = 0
-    for s, pred in zip(val, stage.val_pred, strict=True):
-        e = (np.asarray(s.y, dtype=float) - np.asarray(pred, dtype=float)) / weights
-        total += float(np.sum(e * e))
-        count += e.shape[0]
-    return total / max(count, 1)
 
 
 def complexity(d: Decision) -> tuple[int, int]:
@@ -925,23 +912,18 @@ def complexity(d: Decision) -> tuple[int, int]:
 
 def choose(passing: Sequence[Decision], val: Sequence[Segment], alpha: float) -> Choice:
     """Choose the trial to accept among a round's passing trials (all refitted from the same
-    model): the simplest of those as good on validation as the best one.
+    model): the simplest of those as good on validation as the one with the largest LR.
 
-    The trial with the smallest validation loss (:func:`validation_loss`) is the reference. A
-    trial is *tied* with it when the reference's validation error is not significantly smaller
-    than the trial's (one-sided Diebold-Mariano test at ``alpha``, :func:`validation_test`; in
-    cross-validated selection ``val`` are the estimation segments and the stages'
-    ``val_pred`` are out of fold). Among the tied trials the chosen one has the fewest added
-    estimated parameters, then the fewest shape parameters (:func:`complexity`), then the
-    smallest validation loss. Two laws that fit the data equally well (e.g. a plain Coulomb
-    friction and a Stribeck friction with a fitted Stribeck speed, both two parameters, so BIC
-    cannot tell them apart) are thus told apart by parsimony instead of by a difference within
-    the noise; a richer law that is significantly better on validation is still chosen; and
-    of two equally simple candidates the one that predicts the validation data better wins,
-    not the one with the larger likelihood ratio on the estimation data. Measured on a live
-    episode (the plant's Coulomb friction stepped up on both shafts): Coulomb friction on
-    carrier 3 had the larger LR (3398 against 3142), Coulomb friction on the sun shaft cut the
-    validation error by 61 % against 34 %.
+    The trial with the largest LR is the reference. A trial is *tied* with it when the
+    reference's validation error is not significantly smaller than the trial's (one-sided
+    Diebold-Mariano test at ``alpha``, :func:`validation_test`; in cross-validated selection
+    ``val`` are the estimation segments and the stages' ``val_pred`` are out of fold). Among
+    the tied trials the chosen one has the fewest added estimated parameters, then the fewest
+    shape parameters (:func:`complexity`), then the largest LR. Two laws that fit the data
+    equally well (e.g. a plain Coulomb friction and a Stribeck friction with a fitted
+    Stribeck speed, both two parameters, so BIC cannot tell them apart) are then told apart
+    by parsimony instead of by a likelihood difference within the noise; a richer law that is
+    significantly better on validation is still chosen.
 
     Args:
         passing: the passing trials (each with its refitted ``stage``).
@@ -959,18 +941,16 @@ def choose(passing: Sequence[Decision], val: Sequence[Segment], alpha: float) ->
             raise ValueError(f"choose: trial {d.score.label} has no refitted stage (its refit "
                              f"failed: {d.reason})")
         stages[id(d)] = d.stage
-    weights = np.asarray(stages[id(passing[0])].fit.weights_, dtype=float)
-    loss = {id(d): validation_loss(stages[id(d)], val, weights) for d in passing}
-    ref = min(passing, key=lambda d: loss[id(d)])
+    ref = max(passing, key=lambda d: d.lr)
     cmp: dict[int, Comparison | None] = {
         id(d): None if d is ref else validation_test(stages[id(d)], stages[id(ref)], val)
         for d in passing}
     tied_ids = {k for k, c in cmp.items() if c is None or not c.better(alpha)}
     tied = [d for d in passing if id(d) in tied_ids]
-    chosen = min(tied, key=lambda d: (*complexity(d), loss[id(d)]))
-    losers = [(d, _lost(d, chosen, ref, id(d) in tied_ids, cmp, loss))
+    chosen = min(tied, key=lambda d: (*complexity(d), -d.lr))
+    losers = [(d, _lost(d, chosen, ref, id(d) in tied_ids, cmp))
               for d in passing if d is not chosen]
-    return Choice(chosen=chosen, reference=ref, tied=tied,
+    return Choice(chosen=chosen, largest_lr=ref, tied=tied,
                   comparisons=[cmp[id(d)] for d in passing], losers=losers)
 
 
@@ -1003,22 +983,25 @@ def _dm(c: Comparison | None) -> str:
 
 
 def _lost(d: Decision, c: Decision, ref: Decision, tied: bool,
-          cmp: dict[int, Comparison | None], loss: dict[int, float]) -> str:
-    """Why passing trial ``d`` lost to the chosen ``c`` (``ref``: the smallest validation
-    loss; ``tied``: ``d`` is as good on validation as ``ref``; ``cmp``: the tie tests by
-    ``id``, the reference's validation error against each trial's; ``loss``: the validation
-    losses by ``id``)."""
-    lab = c.score.label
+          cmp: dict[int, Comparison | None]) -> str:
+    """Why passing trial ``d`` lost to the chosen ``c`` (``ref``: the largest LR; ``tied``:
+    ``d`` is as good on validation as ``ref``; ``cmp``: the tie tests by ``id``, the
+    reference's validation error against each trial's)."""
+    lab, ref_lab = c.score.label, ref.score.label
+    p_c, p_d = _p(cmp[id(c)]), _p(cmp[id(d)])
     simp = _simpler(c, d)
+    if c is ref:
+        why = f"{lab} has the larger LR ({c.lr:.4g} > {d.lr:.4g})"
+        if not tied:
+            return f"{why} and is significantly better on validation ({_dm(cmp[id(d)])})"
+        return f"{why} and is simpler ({simp})" if simp else why
+    if d is ref:
+        return (f"{lab} is as good on validation (Diebold-Mariano p = {p_c:.2g}) and simpler "
+                f"({simp}), at a smaller LR ({c.lr:.4g} < {d.lr:.4g})")
     if not tied:
-        why = f"{ref.score.label} is significantly better on validation ({_dm(cmp[id(d)])})"
-        if c is not ref:
-            why += f", and {lab} is as good as it (p = {_p(cmp[id(c)]):.2g}) and simpler"
-        return why
-    as_good = (f"{lab} is as good on validation (Diebold-Mariano p = {_p(cmp[id(c)]):.2g}"
-               + (f"; this one {_p(cmp[id(d)]):.2g}" if d is not ref else "") + ")")
-    if simp:
-        return f"{as_good} and simpler ({simp})" + (
-            f", at a smaller LR ({c.lr:.4g} < {d.lr:.4g})" if c.lr < d.lr else "")
-    return (f"{as_good}, as simple, with the smaller validation loss "
-            f"({loss[id(c)]:.4g} < {loss[id(d)]:.4g})")
+        return (f"the largest-LR {ref_lab} is significantly better on validation "
+                f"({_dm(cmp[id(d)])}), and {lab} is as good as it (p = {p_c:.2g}) and simpler")
+    why = (f"{lab} is, like this one, as good on validation as the largest-LR {ref_lab} "
+           f"(Diebold-Mariano p = {p_c:.2g}; this one {p_d:.2g})")
+    return (f"{why} and simpler ({simp})" if simp
+            else f"{why} and has the larger LR ({c.lr:.4g} > {d.lr:.4g})")

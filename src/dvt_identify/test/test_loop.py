@@ -100,7 +100,8 @@ def test_coulomb_accepted_and_recovered(tmp_path: Path) -> None:
     [asym] = [d for d in res.decisions if d.score.effect.name == "asymmetric_friction"]
     assert not asym.accepted and asym.dof < dec.dof
     assert asym.reason.startswith("passes (")
-    assert "but coulomb_friction@v is significantly better on validation (error " in asym.reason
+    assert ("but coulomb_friction@v has the larger LR" in asym.reason
+            and "and is significantly better on validation (error " in asym.reason)
     rep = build_report(res)
     first = rep["effects"][0]
     assert first["name"] == "coulomb_friction" and first["accepted"] is True
