@@ -8,9 +8,8 @@ recorder selects its windows by host time). It is replayed at rate 1 into the mo
 ``dvt_identify_node`` with the supervisor enabled (short windows, ``min_relative_gain`` 0.25).
 
 1. ``test_detected_change_is_refitted_pushed_and_confirmed``: the model node's detector
-   (reference learned on 14 s of neutral PRBS) raises the alarm - or, when a loaded model node
-   has not within ``FALLBACK_S``, the test publishes it as the model node would
-   (``Alarm.to_json()`` on ``/dvt/model/change``; the printed line says which) -> wait ->
+   (reference learned on 12.5 s of neutral PRBS) raises the alarm - only the detector: the test
+   publishes nothing, so a detector that misses the change fails the test - -> wait ->
    snapshot -> refit (finds the Coulomb friction) -> better on the held-out slice -> push ->
    watch -> confirmed; every step on ``/diagnostics``, the report written and published.
 2. ``test_unverifiable_push_is_rolled_back``: the same, test alarm, replay stopped when the watch
@@ -63,14 +62,30 @@ LEAD_S = 1.5
 """Stamps start this long after the bag is written (the replay's start-up)."""
 DETECTOR_LEARN_S = 8.0
 """The model node's reference window [s] (default 20): learned on the 14 s of neutral PRBS."""
-FALLBACK_S = 10.0
-"""Wall time after the change [s] within which the model node's detector must have alarmed;
-else the test publishes the alarm (on 2 loaded cores the model node drops up to half the
-samples and runs seconds behind; its detector counts samples, so it may still be learning)."""
 SUPERVISOR = {"min_post_change_s": 16.0, "settle_s": 1.0, "validation_s": 5.0,
               # watch and baseline span a whole repeated run: comparable operating points
               "watch_s": 15.0, "watch_settle_s": 1.0, "baseline_s": 15.0,
               "min_watch_samples": 1000, "fit_timeout_s": 90.0, "push_timeout_s": 40.0}
+SNAPSHOT_MARGIN_S = 10.0
+"""The recorder's ``snapshot_margin_s`` (it, too, runs behind on two loaded cores)."""
+SNAPSHOT_TIMEOUT_S = 60.0
+"""The identify node's ``supervisor.snapshot_timeout_s`` (its default)."""
+DETECT_S = 30.0
+"""Wall time after the change [s] within which the model node's alarm must arrive. Measured on
+this 2-core machine (2026-11-26, quiet and with one core busy): the detector's change estimate
+0.01 s from the truth, the alarm within 2 s of the change in data time; the model node's lag
+behind the wall clock adds up to ~10 s when the cores are loaded. The detector's own delay is
+checked in data time (``stamp_s - change``), not by this bound."""
+EPISODE_S = (SUPERVISOR["min_post_change_s"] + SNAPSHOT_TIMEOUT_S + SUPERVISOR["fit_timeout_s"]
+             + 2 * SUPERVISOR["push_timeout_s"] + SUPERVISOR["watch_s"] + 20.0)
+"""Upper bound [s, wall] from the alarm to the episode report: every phase of the supervisor is
+bounded by its own setting (waiting ``min_post_change_s`` of data, the snapshot
+``snapshot_timeout_s`` after the window's end, the refit ``fit_timeout_s``, push and rollback
+``push_timeout_s`` each, the watch ``watch_s``) plus 20 s for the model node's lag. Measured
+typical figures (2026-11-26, 2 cores, quiet and one core busy): waiting 15.2-15.9 s, snapshot
+and refit 15.5-16.4 s (the refit itself 5.3-6.2 s; a cold numba cache adds 3.5 s), push < 0.1 s,
+whole episode 46-48 s. The test waits for the supervisor's verdict, not a tighter guess: a
+phase that runs out ends the episode with its reason, which the assertion prints."""
 
 
 def _runs(hidden: list[str], repeat: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -180,30 +195,27 @@ def _episode(procs: Any, loop: _Loop, tmp: Path, hidden: list[str], repeat: int,
     replay = procs.start("dvt-replay", str(tmp / "live"), "--rate", "1.0",
                          "--wait-subscribers", "2", "--wait-timeout", "20")
     change = t0 + first
-    loop.source = "test"
     if detector:
-        deadline = change + FALLBACK_S
-
-        def found() -> bool:
-            return any(a["change_s"] >= change - 1.0 for a in loop.alarms)
-
-        while time.time() < deadline and not found():
-            loop.exe.spin_once(timeout_sec=0.05)
-        # an alarm before the change (a loaded model node drops samples) starts the episode
-        # early; the next alarm restarts the wait from its change time
+        # only the model node's detector raises the alarm: a missed change fails the test
+        loop.source = "detector"
+        lst.spin_until(lambda: any(a["change_s"] >= change - 1.0 for a in loop.alarms),
+                       (change - time.time()) + DETECT_S, "the model node's alarm")
+        # an alarm before the change (a false alarm) starts an episode early; the next alarm
+        # restarts the wait from its change time: counted and printed, not hidden
         loop.early = [a for a in loop.alarms if a["change_s"] < change - 1.0]
-        if found():
-            loop.source = "detector"
-        else:
-            _publish_alarm(loop, change)
     else:
+        loop.source = "test"
         # the stamps follow the host clock (replay at rate 1 from about their start)
         lst.spin_until(lambda: time.time() > change + 1.5, 60.0, "the replay past the change")
         assert replay.poll() is None, procs.log(replay)
         _publish_alarm(loop, change)
     if stop_when_watching:
-        lst.spin_until(lambda: any(v.get("state") == "watching" for _, _, v in loop.steps),
-                       timeout, "the watch")
+        lst.spin_until(lambda: (any(v.get("state") == "watching" for _, _, v in loop.steps)
+                                or loop.episodes), timeout, "the watch (or the episode's end)")
+        if not any(v.get("state") == "watching" for _, _, v in loop.steps):
+            rep = loop.episodes[-1]
+            pytest.fail(f"the episode ended without a watch: {rep['outcome']}: {rep['reason']}; "
+                        f"timings {rep['timings']}")
         procs.stop(replay)
     lst.spin_until(lambda: loop.episodes, timeout, "the episode report")
     procs.stop(replay)
@@ -240,15 +252,16 @@ def _check_report(rep: dict[str, Any], change: float, tmp: Path, tol: float = 1e
 
 
 def test_detected_change_is_refitted_pushed_and_confirmed(procs, rclpy_context, tmp_path):
-    """The model node's detector (reference window ``DETECTOR_LEARN_S``, learned on 14 s of
-    neutral PRBS of the clean plant) raises the alarm (or, if it has not within ``FALLBACK_S``,
-    the test, as the model node would); the identifier does the rest."""
+    """The model node's detector (reference window ``DETECTOR_LEARN_S``, learned on 12.5 s of
+    neutral PRBS of the clean plant) raises the alarm; the identifier does the rest."""
     loop = _Loop(rclpy_context)
     _start(procs, tmp_path, min_gain=0.25, detector=True)
     rep, change = _episode(procs, loop, tmp_path, ["quiet", "coulomb", "coulomb"],
-                           repeat=4, timeout=100.0, detector=True)
-    # the detector's estimate of the change time: within 2 s of the true one
+                           repeat=4, timeout=EPISODE_S, detector=True)
+    # the detector's estimate of the change time: within 2 s of the true one, and the alarm
+    # raised (in data time) within 3 s of the change
     _check_report(rep, change, tmp_path, tol=2.0, output="")
+    assert rep["detected_s"] - change <= 3.0, (rep["detected_s"] - change)
     assert rep["outcome"] == "confirmed", (rep["outcome"], rep["reason"])
     assert rep["pushed"] and not rep["rolled_back"]
     refit = rep["refit"]
@@ -283,7 +296,7 @@ def test_unverifiable_push_is_rolled_back(procs, rclpy_context, tmp_path):
     loop = _Loop(rclpy_context)
     _start(procs, tmp_path, min_gain=0.25)
     rep, change = _episode(procs, loop, tmp_path, ["none", "coulomb", "coulomb"], repeat=4,
-                           timeout=100.0, stop_when_watching=True)
+                           timeout=EPISODE_S, stop_when_watching=True)
     _check_report(rep, change, tmp_path)
     assert rep["outcome"] == "rolled_back", (rep["outcome"], rep["reason"])
     assert rep["pushed"] and rep["rolled_back"] and "cannot verify" in rep["reason"]
@@ -298,7 +311,7 @@ def test_unverifiable_push_is_rolled_back(procs, rclpy_context, tmp_path):
 def test_false_alarm_on_a_good_model_is_not_pushed(procs, rclpy_context, tmp_path):
     loop = _Loop(rclpy_context)
     _start(procs, tmp_path, min_gain=0.25)
-    rep, change = _episode(procs, loop, tmp_path, ["none", "none"], repeat=3, timeout=80.0)
+    rep, change = _episode(procs, loop, tmp_path, ["none", "none"], repeat=3, timeout=EPISODE_S)
     _check_report(rep, change, tmp_path)
     assert rep["outcome"] == "not_better", (rep["outcome"], rep["reason"])
     assert not rep["pushed"] and not rep["rolled_back"]
