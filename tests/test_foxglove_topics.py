@@ -1,6 +1,7 @@
 """``dvt-launch sim --foxglove``: a Foxglove WebSocket client gets the advertised channels and
 the messages at the configured rate, with the values of the ROS topics; the shipped layout
-names only advertised channels."""
+names only advertised channels. Clients offering only the old subprotocol name
+(``foxglove.websocket.v1``: Foxglove Studio, older Lichtblick) get the same stream."""
 
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from dvt_driver.run.foxglove_core import (
     STATE,
     layout_topics,
 )
+from dvt_driver.run.foxglove_relay import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL
 from dvt_model.contract import DIAGNOSTICS, IDENTIFY_RESULT, JOINT_STATES, MODEL_RESIDUAL
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
@@ -39,11 +41,14 @@ def _free_port() -> int:
 
 
 class FoxgloveClient:
-    """A minimal Foxglove WebSocket protocol client: subscribes to every advertised channel
-    and keeps the decoded JSON messages (with their log times) per topic."""
+    """A minimal Foxglove WebSocket protocol client: offers ``subprotocols`` (only those),
+    subscribes to every advertised channel and keeps the decoded JSON messages (with their log
+    times) per topic; :attr:`subprotocol` is the name the server chose."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, subprotocols: list[str]) -> None:
         self.url = url
+        self.offered = subprotocols
+        self.subprotocol: str | None = None
         self.ws: Any = None
         self.channels: dict[int, dict[str, Any]] = {}
         self.subs: dict[int, str] = {}
@@ -61,9 +66,10 @@ class FoxgloveClient:
         from websockets.sync.client import connect
 
         try:
-            with connect(self.url, subprotocols=["foxglove.sdk.v1"],  # type: ignore[list-item]
+            with connect(self.url, subprotocols=self.offered,  # type: ignore[arg-type]
                          open_timeout=5) as ws:
                 self.ws = ws
+                self.subprotocol = ws.subprotocol
                 self._connected.set()
                 self._loop(ws)
         except Exception as exc:  # refused or closed
@@ -109,6 +115,19 @@ def _stamp(msg: dict[str, Any]) -> int:
     return int(s["sec"]) * 1_000_000_000 + int(s["nsec"])
 
 
+def _launch(procs: Procs, tmp_path: Path) -> tuple[Any, int]:
+    """``dvt-launch sim --foxglove`` (plant, driver, model node, bridge) up; its process and
+    the bridge's port."""
+    port = _free_port()
+    launch = procs.start("dvt-launch", "sim", "--rate", str(SIM_RATE), "--foxglove",
+                         "--foxglove-port", str(port), "--foxglove-param",
+                         f"rate_hz:={RATE_HZ:g}", "--log-dir", str(tmp_path / "launch"))
+    wait_for(lambda: "Foxglove: open" in procs.log(launch) or launch.poll() is not None, 60,
+             "dvt-launch with --foxglove to be up")
+    assert launch.poll() is None, procs.log(launch)
+    return launch, port
+
+
 @pytest.mark.flaky(reruns=2)  # real-time chain on a shared 2-core machine: a scheduling hiccup
 # can delay one keep-alive or message; a real fault fails all three runs
 def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) -> None:
@@ -119,13 +138,7 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
 
     from dvt_model import rosutil
 
-    port = _free_port()
-    launch = procs.start("dvt-launch", "sim", "--rate", str(SIM_RATE), "--foxglove",
-                         "--foxglove-port", str(port), "--foxglove-param",
-                         f"rate_hz:={RATE_HZ:g}", "--log-dir", str(tmp_path / "launch"))
-    wait_for(lambda: "Foxglove: open" in procs.log(launch) or launch.poll() is not None, 60,
-             "dvt-launch with --foxglove to be up")
-    assert launch.poll() is None, procs.log(launch)
+    launch, port = _launch(procs, tmp_path)
 
     node = rclpy.create_node("fox_check", context=rclpy_context)
     ros: dict[str, dict[int, list[float]]] = {JOINT_STATES: {}, MODEL_RESIDUAL: {}}
@@ -143,8 +156,9 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
     # the identifier's result comes before the client connects: the client still gets it
     summary = {"baseline_fit_percent": {"sun_shaft": 97.5}, "pushed": {"node": "dvt_model"}}
     result_pub.publish(String(data=json.dumps(summary)))
-    client = FoxgloveClient(f"ws://127.0.0.1:{port}")
+    client = FoxgloveClient(f"ws://127.0.0.1:{port}", [SDK_SUBPROTOCOL])
     try:
+        assert client.subprotocol == SDK_SUBPROTOCOL
         wait_for(lambda: client.topics() >= CHANNEL_TOPICS, 10, "the advertised channels")
         assert client.topics() == set(CHANNEL_TOPICS)
         for c in client.channels.values():
@@ -207,5 +221,36 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
         client.close()
         ex.shutdown(timeout_sec=1.0)
         node.destroy_node()
+    rc = procs.stop(launch, timeout=30)
+    assert rc in (0, 130), procs.log(launch)[-3000:]
+
+
+def test_foxglove_bridge_live_both_subprotocol_names(procs: Procs, tmp_path: Path) -> None:
+    """One bridge, two clients at once: one offering only the old name
+    ``foxglove.websocket.v1``, one only the new ``foxglove.sdk.v1``; each gets its own name back
+    and the joint states of the live plant/driver chain."""
+    launch, port = _launch(procs, tmp_path)
+    clients: dict[str, FoxgloveClient] = {}
+    try:
+        for name in (LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL):
+            clients[name] = FoxgloveClient(f"ws://127.0.0.1:{port}", [name])
+        for name, client in clients.items():
+            assert client.subprotocol == name
+            wait_for(lambda c=client: c.topics() >= CHANNEL_TOPICS, 10,
+                     f"the advertised channels ({name})")
+        wanted = int(RATE_HZ)  # about a second of the decimated stream
+        for name, client in clients.items():
+            wait_for(lambda c=client: len(c.got(JOINT_STATES)) >= wanted,
+                     20, f"{wanted} {JOINT_STATES} messages ({name})")
+            js = client.got(JOINT_STATES)
+            stamps = [_stamp(m[1]) for m in js]
+            assert all(b > a for a, b in itertools.pairwise(stamps)), (name, stamps[:20])
+            assert all(m[0] == _stamp(m[1]) for m in js), f"{name}: log time is the sample stamp"
+            assert all(m[1]["name"] == ["sun_shaft", "carrier3"] and len(m[1]["velocity"]) == 2
+                       for m in js), (name, js[-1][1])
+            assert not client.errors, (name, client.errors)
+    finally:
+        for client in clients.values():
+            client.close()
     rc = procs.stop(launch, timeout=30)
     assert rc in (0, 130), procs.log(launch)[-3000:]

@@ -10,9 +10,11 @@ Live: node ``dvt_foxglove`` subscribes the suite's topics with the contract's Qo
 for the 1 kHz streams, reliable for commands and diagnostics, latched for the identifier's
 result), decimates the 1 kHz streams to ``rate_hz`` by sample stamp and serves the channels of
 :data:`dvt_driver.run.foxglove_core.CHANNELS` (JSON with JSON schemas) on
-``ws://host:port`` (Foxglove: *Open connection* -> *Foxglove WebSocket*). See
-``docs/foxglove.md``. The 1 kHz streams are subscribed raw: only the forwarded samples are
-deserialized, nothing at all while no client is connected (and no ``mcap`` file is written).
+``ws://host:port`` (Foxglove: *Open connection* -> *Foxglove WebSocket*), to clients offering
+either subprotocol name, ``foxglove.sdk.v1`` or the older ``foxglove.websocket.v1`` (see
+:mod:`dvt_driver.run.foxglove_relay`). See ``docs/foxglove.md``. The 1 kHz streams are
+subscribed raw: only the forwarded samples are deserialized, nothing at all while no client is
+connected (and no ``mcap`` file is written).
 
 Offline (``--bag``): reads a recorded bag and writes an MCAP file with the same channels
 (decimated the same way, noise band, states and alarms included), to open in Foxglove with the
@@ -45,6 +47,10 @@ from dvt_driver.run.foxglove_core import (
     parse_settings,
     peek_stamp_ns,
 )
+from dvt_driver.run.foxglove_relay import SubprotocolRelay
+
+_SDK_HOST = "127.0.0.1"
+"""Where the foxglove-sdk server listens (any free port); the public address is the relay's."""
 
 _ROS_TYPES = {
     "sensor_msgs/msg/JointState": ("sensor_msgs.msg", "JointState"),
@@ -141,16 +147,23 @@ def _node_class() -> type:
 
             foxglove.set_log_level("WARN")
             self.listener = _Subscriptions()
-            try:
+            where = f"{self.settings.host}:{self.settings.port}"
+            try:  # the SDK server on a loopback port; clients reach it through the relay
                 self.server = foxglove.start_server(
-                    name="dvt", host=self.settings.host, port=self.settings.port,
-                    context=self.out.context, server_listener=self.listener)
-            except Exception as exc:  # FoxgloveError: address in use, bad host, ...
+                    name="dvt", host=_SDK_HOST, port=0, context=self.out.context,
+                    server_listener=self.listener)
+            except Exception as exc:  # FoxgloveError
                 self.out.close()
-                raise BridgeSettingsError(f"host/port: cannot serve on "
-                                          f"{self.settings.host}:{self.settings.port}: "
-                                          f"{exc}") from exc
-            self.port = self.server.port
+                raise BridgeSettingsError(f"host/port: cannot serve on {where}: "
+                                          f"foxglove-sdk server: {exc}") from exc
+            try:
+                self.relay = SubprotocolRelay(self.settings.host, self.settings.port,
+                                              (_SDK_HOST, self.server.port), self._relay_warning)
+            except OSError as exc:  # address in use, unknown host, ...
+                self.server.stop()
+                self.out.close()
+                raise BridgeSettingsError(f"host/port: cannot serve on {where}: {exc}") from exc
+            self.port = self.relay.port
             self.received = 0
             qos = {"sensor": rosutil.SENSOR_QOS, "command": rosutil.COMMAND_QOS,
                    "latched": rosutil.LATCHED_QOS, "diag": rosutil.qos(DIAGNOSTICS_QOS)}
@@ -202,7 +215,11 @@ def _node_class() -> type:
                 if last is not None:
                     self.out.log([last])
 
+        def _relay_warning(self, text: str) -> None:
+            self.get_logger().warning(f"WebSocket: {text}", throttle_duration_sec=10.0)
+
         def on_shutdown_hook(self) -> None:
+            self.relay.close()
             self.server.stop()
             self.out.close()
 
