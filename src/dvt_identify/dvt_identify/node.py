@@ -9,18 +9,19 @@ Requests (either):
 
 The identification (:func:`dvt_identify.pipeline.run`: baseline fit, residual tracing, augmentation,
 report in ``output_dir``) runs in a worker thread; the service answers at once ("started" or why
-not). When it ends, the accepted model is pushed to ``model_node`` through its standard
-parameter services (``M``, ``D``, ``effects``; see :mod:`dvt_identify.push`), so the live
-residual on ``/dvt/model/residual`` reflects the refitted model. A JSON summary goes to
+not). When it ends, the accepted model is pushed to ``model_node`` (``M``, ``D``,
+``effects``, ...; see :mod:`dvt_identify.push`) in one transaction through its standard
+``~/set_parameters_atomically`` service (:func:`push_parameters`): applied whole or not at all,
+so the live residual on ``/dvt/model/residual`` reflects the refitted model. A JSON summary goes to
 ``/dvt/identify/result`` (latched) and a status to ``/diagnostics``.
 
 With ``supervisor.enabled`` the node also closes the loop by itself (``docs/loop.md`` §3-4):
 change alarms on ``/dvt/model/change`` and the live residual on ``/dvt/model/residual`` feed
 the pure :class:`dvt_identify.supervisor.Supervisor`; its actions are performed here: a
 snapshot request to the rolling recorder, the refit of the window in a worker thread
-(:func:`dvt_identify.supervisor.refit`), the push / rollback through the model node's parameter
-services, every step on ``/diagnostics`` (``dvt_identify: supervisor``), and per episode
-``episode-N.json`` / ``.md`` in ``output_dir/episodes`` plus the record on
+(:func:`dvt_identify.supervisor.refit`), the push / rollback (each one transaction,
+:func:`push_parameters`), every step on ``/diagnostics`` (``dvt_identify: supervisor``), and
+per episode ``episode-N.json`` / ``.md`` in ``output_dir/episodes`` plus the record on
 ``/dvt/identify/episode``.
 """
 
@@ -97,6 +98,54 @@ def model_parameter(name: str, value: Any) -> Parameter:
     if kind is Parameter.Type.BOOL:
         return Parameter(name, kind, bool(value))
     return Parameter(name, kind, int(value))
+
+
+def push_parameters(client: AsyncParameterClient, values: Mapping[str, Any],
+                    timeout: float = 10.0, service_timeout: float = 5.0) -> dict[str, Any]:
+    """Set the model node's parameters ``values`` (name -> value, :func:`model_parameter`
+    types them) in ONE transaction: the standard ``~/set_parameters_atomically`` service. The
+    node validates the set together and applies it whole (one predictor, one detector reset)
+    or refuses it whole (nothing changes); a push or a rollback is never half applied
+    (``docs/interface.md`` §6).
+
+    The caller's executor must spin ``client``'s node in another thread (this polls).
+
+    Args:
+        client: a parameter client of the model node.
+        values: the parameters to set together.
+        timeout: seconds to wait for the answer (a busy model node answers after the samples
+            queued before the call) [s].
+        service_timeout: seconds to wait for the node's parameter services [s].
+
+    Returns:
+        ``{"node": <model node name>, **values}``.
+
+    Raises:
+        DvtIdentifyError: no parameter services, no answer within ``timeout`` (the set may
+            still be applied whole later), or the node refused the set (its reason; nothing
+            was applied).
+    """
+    node_name = client.remote_node_name
+    if not client.wait_for_services(timeout_sec=service_timeout):
+        raise DvtIdentifyError(f"model node {node_name!r} has no parameter services (not "
+                               "running?)")
+    params = [model_parameter(k, v) for k, v in values.items()]
+    future = client.set_parameters_atomically(params)
+    deadline = time.monotonic() + timeout
+    while not future.done():
+        if time.monotonic() > deadline:
+            raise DvtIdentifyError(f"model node {node_name!r} did not answer "
+                                   f"set_parameters_atomically within {timeout:g} s (the push "
+                                   "may still be applied, whole)")
+        time.sleep(0.01)
+    response = future.result()
+    if response is None:
+        raise DvtIdentifyError(f"model node {node_name!r}: set_parameters_atomically failed: "
+                               f"{future.exception()!r}")
+    if not response.result.successful:
+        raise DvtIdentifyError(f"model node refused {sorted(values)} (nothing applied): "
+                               f"{response.result.reason}")
+    return {"node": node_name, **values}
 
 
 class IdentifyNode(Node):
@@ -204,23 +253,9 @@ class IdentifyNode(Node):
         self.get_logger().info(f"identification {self.state}: {json.dumps(summary)}")
 
     def _push(self, values: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
-        if not self.param_client.wait_for_services(timeout_sec=5.0):
-            raise DvtIdentifyError(f"model node {self.param_client.remote_node_name!r} has no "
-                                   "parameter services (not running?)")
-        params = [model_parameter(k, v) for k, v in values.items()]
-        future = self.param_client.set_parameters(params)
-        deadline = time.monotonic() + timeout
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise DvtIdentifyError(f"model node did not answer set_parameters within "
-                                       f"{timeout:g} s")
-            time.sleep(0.01)
-        results = future.result().results
-        refused = [f"{p.name}: {r.reason}" for p, r in zip(params, results, strict=True)
-                   if not r.successful]
-        if refused:
-            raise DvtIdentifyError(f"model node refused: {'; '.join(refused)}")
-        return {"node": self.param_client.remote_node_name, **values}
+        """Push (or roll back) the model node's parameters in one transaction
+        (:func:`push_parameters`); called in a worker thread."""
+        return push_parameters(self.param_client, values, timeout=timeout)
 
     # -- supervisor ---------------------------------------------------------------------
     def _setup_supervisor(self) -> None:

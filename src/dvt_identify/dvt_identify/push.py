@@ -42,6 +42,11 @@ determined each value (relative standard deviation at most :data:`MAX_RELATIVE_S
 Every term is checked with :func:`dvt_model.contract.validate_term` /
 :func:`~dvt_model.contract.validate_effects` and the whole push with
 :func:`dvt_model.config.check_parameters`: the push cannot write what the node would refuse.
+
+:attr:`Push.parameters` is one transaction: the identifier sends it (and a rollback, the
+previous values of the same names) through the model node's ``~/set_parameters_atomically``
+(:func:`dvt_identify.node.push_parameters`), never parameter by parameter, so the node runs the
+old model or the new one, never a mix (``docs/interface.md`` §6).
 """
 
 from __future__ import annotations
@@ -80,8 +85,8 @@ _PROBE_DT = 1e-3
 
 @dataclass(frozen=True)
 class Push:
-    """Parameters for ``dvt_model_node`` (name -> value) and what could not be pushed (one
-    line each, with the reason)."""
+    """Parameters for ``dvt_model_node`` (name -> value; set together, in one transaction)
+    and what could not be pushed (one line each, with the reason)."""
 
     parameters: dict[str, Any]
     skipped: list[str] = field(default_factory=list)

@@ -166,7 +166,8 @@ class RequestFit:
 
 @dataclass(frozen=True)
 class Push:
-    """Push ``parameters`` (the new model) to the model node; answer with ``push_done``."""
+    """Push ``parameters`` (the new model) to the model node in one transaction
+    (:func:`dvt_identify.node.push_parameters`); answer with ``push_done``."""
 
     episode: int
     parameters: Mapping[str, Any]
@@ -174,7 +175,8 @@ class Push:
 
 @dataclass(frozen=True)
 class Rollback:
-    """Push ``parameters`` (the model before the episode) back; answer ``rollback_done``."""
+    """Push ``parameters`` (the model before the episode) back in one transaction, like
+    :class:`Push`; answer ``rollback_done``."""
 
     episode: int
     parameters: Mapping[str, Any]

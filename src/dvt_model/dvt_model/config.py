@@ -28,20 +28,29 @@ Admissibility beyond each parameter's own type, length and range:
 Every error is a :class:`~dvt_model.errors.ContractError`,
 :class:`~dvt_model.errors.ModelError` or :class:`~dvt_model.errors.ParameterError` whose message
 starts with the parameter's name and gives the value and what is admissible.
+
+A change of the running node's parameters is one transaction (:func:`model_transaction`): the
+whole set of changed values is validated together against the current ones and turned into one
+predictor, or refused as a whole (the first bad value named); :func:`partner_clears` is the
+A/B rule (emptying one of them empties the other in the same transaction). The model node
+(:mod:`dvt_model.node`) applies an accepted transaction at once: one predictor swap, one
+change-detector reset.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import enum
+from collections.abc import Callable, Mapping, Sized
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
 
 from dvt_model.contract import (
     CURRENT_NAMES,
+    DETECTOR_PARAMETERS,
     DETECTOR_PREFIX,
     M_MAX_CONDITION,
     M_MIN_EIGENVALUE,
@@ -347,3 +356,114 @@ def build_predictor(values: Mapping[str, Any]) -> tuple[Predictor, str]:
                           output_gain=terms.gains, input_dead_zone=terms.dead_zones,
                           output_maps=terms.output_maps())
     return predictor, desc
+
+
+# ------------------------------------------------------------------- parameter transactions
+class _Unset(enum.Enum):
+    UNSET = "unset"
+
+
+UNSET: Final = _Unset.UNSET
+"""The value of a parameter in a change set that asks to unset it (ROS ``PARAMETER_NOT_SET``);
+a model parameter cannot be unset."""
+LINEAR_PAIR: Final = ("A", "B")
+"""The linear model's parameters, given together or both empty."""
+
+
+def _is_empty(value: Any) -> bool:
+    """``None`` (not set) or an empty list; a string or a number is not empty."""
+    return value is None or (isinstance(value, Sized) and not isinstance(value, str | bytes)
+                             and len(value) == 0)
+
+
+def partner_clears(current: Mapping[str, Any], changes: Mapping[str, Any]) -> tuple[str, ...]:
+    """The A/B rule: names to empty together with ``changes``.
+
+    Emptying ``A`` (or ``B``) while the other is set and not in the same change set clears the
+    linear model: the other is emptied in the same transaction (so that no reader ever sees
+    one without the other).
+
+    Args:
+        current: the node's current model-parameter values (``None``: not set).
+        changes: the change set, name -> new value (:data:`UNSET` to unset).
+    """
+    a, b = LINEAR_PAIR
+    out: list[str] = []
+    for key, other in ((a, b), (b, a)):
+        if (key in changes and changes[key] is not UNSET and _is_empty(changes[key])
+                and other not in changes and not _is_empty(current.get(other))):
+            out.append(other)
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ModelTransaction:
+    """A set of model-node parameter changes validated together, ready to apply at once.
+
+    Attributes:
+        changed: the model parameters the set changes, in request order, then the partner
+            emptied by the A/B rule (:func:`partner_clears`).
+        values: every model parameter's value after the change (``None``: not set).
+        predictor: the one predictor built for ``values``.
+        description: a one-line description of its model.
+    """
+
+    changed: tuple[str, ...]
+    values: dict[str, Any]
+    predictor: Predictor
+    description: str
+
+
+def _never_declared(name: str) -> bool:
+    return False
+
+
+def model_transaction(current: Mapping[str, Any], changes: Mapping[str, Any],
+                      is_declared: Callable[[str], bool] = _never_declared
+                      ) -> ModelTransaction | None:
+    """Validate a set of parameter changes of the model node together, as one transaction.
+
+    Each name is checked in order (a ``detector.*`` parameter is read-only, a model parameter
+    cannot be unset, a name that is neither a model parameter nor ``is_declared`` is unknown),
+    then the changed model parameters merged onto ``current`` (with the A/B rule's partner,
+    :func:`partner_clears`) are validated and built into one predictor
+    (:func:`build_predictor`). Pure: nothing is applied; a refusal of any member refuses the
+    whole set.
+
+    Args:
+        current: the node's current model-parameter values by name (``None``: not set).
+        changes: name -> new value, in request order (:data:`UNSET` to unset).
+        is_declared: whether the node has another (not model) parameter of this name, e.g.
+            ``use_sim_time``; such changes pass unchecked.
+
+    Returns:
+        The transaction, or ``None`` when the set changes no model parameter.
+
+    Raises:
+        ContractError, ModelError, ParameterError (all :class:`DvtModelError`): the message
+            starts with the refused parameter's name and gives the value and what is
+            admissible. The numeric checks may also raise ``ValueError``/``ArithmeticError``
+            on values no contract check foresaw; the node refuses those too.
+    """
+    model: dict[str, Any] = {}
+    for name, value in changes.items():
+        if name in DETECTOR_PARAMETERS:
+            raise ContractError(f"{name}: read-only (the detector's settings are fixed at "
+                                "start; restart the node to change them), got "
+                                f"{short_repr(value)}")
+        if name in MODEL_PARAMETERS:
+            if value is UNSET:
+                raise ContractError(f"{name}: cannot be unset: expected "
+                                    f"{MODEL_PARAMETERS[name].admissible}")
+            model[name] = value
+        elif not is_declared(name):
+            shown = name if len(name) <= 100 else short_repr(name)
+            raise ContractError(f"{shown}: unknown parameter of the model node (expected one "
+                                f"of {list(MODEL_PARAMETERS)})")
+    if not model:
+        return None
+    cleared = partner_clears(current, model)
+    values = {**current, **model, **dict.fromkeys(cleared)}
+    predictor, description = build_predictor(values)
+    return ModelTransaction(changed=(*model, *cleared), values=values, predictor=predictor,
+                            description=description)

@@ -17,16 +17,38 @@ admissible values; the descriptions the node declares are taken from it): ``para
 ``mode``, ``reanchor_period``, ``gap_reset``, ``load`` (the joint load on carrier 3:
 ``none``, ``arm``, ``arm-payload`` or a load YAML, :mod:`dvt_model.load`). All are
 changeable at runtime through the standard parameter services. Every change is validated by
-:func:`dvt_model.config.build_predictor` (the same checks as
+:func:`dvt_model.config.model_transaction` (the checks of
 :func:`dvt_model.config.check_parameters`); a refused change leaves the current model
 running, its reason names the parameter, the value and what is admissible, and
 every refusal (including an unknown parameter name or a value of the wrong type) is counted in
 ``/diagnostics`` as ``rejected_parameter_changes`` (the latest reason as ``last_refusal``).
 
-The linear model: ``A`` and ``B`` must be given together (``SetParametersAtomically``, e.g.
-``ros2 param load`` or a parameter client's ``set_parameters_atomically``); setting ``A`` or
-``B`` to an empty list (plain ``SetParameters`` is enough) clears the linear model: the node
-then empties the other one as well and runs the physics again.
+Transactions (a push or a rollback of the identifier, ``docs/interface.md`` §6): a client that
+changes several parameters at once calls the standard service ``~/set_parameters_atomically``
+(``rcl_interfaces/srv/SetParametersAtomically``; rclpy's
+``AsyncParameterClient.set_parameters_atomically``). rclpy hands the whole set to the on-set
+callback once; the node validates it together against the current values and builds one
+predictor (:func:`~dvt_model.config.model_transaction`). Any refused member refuses the set:
+no parameter is stored, the running predictor and the detector are untouched. An accepted set
+is stored by rclpy as one parameter event, and then (post-set callback) the node swaps in the
+predictor and resets the detector, once. A request is one DDS sample: a client killed while it
+pushes has either delivered the whole set (applied whole, whether or not the client lives to
+read the answer) or nothing. The plain ``~/set_parameters`` service (``ros2 param set``)
+applies each parameter of its request as its own transaction (rclpy), validated the same way:
+fine for one value, not for a model (a refused member would leave the ones before it applied).
+
+Why the atomic service and not one structured parameter (e.g. the whole model as one JSON
+string): it is what a ROS 2 engineer expects of a node whose settings belong together. Each
+quantity stays an ordinary typed, described parameter (``ros2 param get/describe``, params
+files, launch, parameter events per name), set together or alone through the same validation,
+and there is no second representation of the same values to keep in step (one place per
+concept); the standard service already means "validate together, all or nothing".
+
+The linear model: ``A`` and ``B`` must be given together (one transaction, e.g.
+``set_parameters_atomically``); setting ``A`` or ``B`` to an empty list (plain
+``SetParameters`` is enough) clears the linear model: the other one is emptied in the same
+transaction (a pre-set callback adds it, :func:`~dvt_model.config.partner_clears`) and the
+node runs the physics again.
 
 The change detector (``detector.*`` parameters, read-only; ``docs/loop.md``): every residual
 goes through :class:`dvt_model.detect.ChangeDetector` (a whitened two-sided CUSUM per output),
@@ -47,7 +69,8 @@ WARN status ``dvt_model: change detector`` on ``/diagnostics``; the detector the
 the node keeps running. Every diagnostics period carries the detector's status (``state``
 learning/testing, ``alarms``, ``phi``, ``k``, ``h``, the CUSUMs per output; level WARN for
 :data:`ALARM_HOLD_S` after an alarm, else OK). Every accepted change of the model's parameters
-(a push or a rollback) resets the detector: it learns the new model's residual first.
+(a push or a rollback, one transaction) resets the detector once: it learns the new model's
+residual first.
 ``detector.enabled:=false`` turns it off.
 
 Service ``~/reset_detector`` (:data:`~dvt_model.contract.SRV_MODEL_RESET_DETECTOR`,
@@ -99,12 +122,19 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from dvt_model import rosutil
-from dvt_model.config import DetectorSetup, build_predictor, detector_config
+from dvt_model.config import (
+    UNSET,
+    DetectorSetup,
+    ModelTransaction,
+    build_predictor,
+    detector_config,
+    model_transaction,
+    partner_clears,
+)
 from dvt_model.contract import (
     CHANGE_QOS,
     CURRENT_NAMES,
     CURRENTS,
-    DETECTOR_PARAMETERS,
     DIAGNOSTICS,
     DIAGNOSTICS_QOS,
     JOINT_STATES,
@@ -118,7 +148,6 @@ from dvt_model.contract import (
     SRV_MODEL_RESET_DETECTOR,
     NodeParam,
     model_reset_detector_service,
-    short_repr,
 )
 from dvt_model.detect import Alarm, ChangeDetector, reference_from_window
 from dvt_model.errors import DvtModelError
@@ -157,10 +186,6 @@ def _descriptor(spec: NodeParam) -> ParameterDescriptor:
 def _initial(spec: NodeParam) -> Any:
     """The declared default: an empty list default is 'not set' (rclpy cannot type ``[]``)."""
     return None if spec.default == () else spec.default
-
-
-def _is_empty(value: Any) -> bool:
-    return value is None or (not isinstance(value, str) and len(value) == 0)
 
 
 # ------------------------------------------------------------- the 1 kHz streams as CDR
@@ -350,13 +375,14 @@ class ModelNode(Node):
         self.bad_messages = 0
         self.published = 0
         self._guard_before = 0  # guard re-anchors of the predictors replaced so far
-        self._clear_next: str | None = None
+        self._staged: ModelTransaction | None = None  # accepted by _on_set, applied next
         self.pairer: LivePairer[bytes] = LivePairer(slots=2, max_pending=2000)
         self._speeds = JointStateReader(SPEED_NAMES, _VELOCITY, positions=True)
         self._currents = JointStateReader(CURRENT_NAMES, _EFFORT)
         self._writer = JointStateWriter(SPEED_NAMES)
+        self.add_pre_set_parameters_callback(self._complete)
         self.add_on_set_parameters_callback(self._on_set)
-        self.add_post_set_parameters_callback(self._after_set)
+        self.add_post_set_parameters_callback(self._apply)
         self.pub_pred = self.create_publisher(JointState, MODEL_JOINT_STATES,
                                               rosutil.SENSOR_QOS)
         self.pub_res = self.create_publisher(JointState, MODEL_RESIDUAL, rosutil.SENSOR_QOS)
@@ -388,46 +414,46 @@ class ModelNode(Node):
         self.get_logger().warning(f"parameter change refused: {reason}")
         return SetParametersResult(successful=False, reason=reason)
 
-    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
-        changes: dict[str, Any] = {}
-        for p in params:
-            if p.name in DETECTOR_PARAMETERS:
-                return self._refuse(f"{p.name}: read-only (the detector's settings are fixed "
-                                    f"at start; restart the node to change them), got "
-                                    f"{short_repr(p.value)}")
-            if p.name in MODEL_PARAMETERS:
-                if p.type_ == Parameter.Type.NOT_SET:
-                    return self._refuse(f"{p.name}: cannot be unset: expected "
-                                        f"{MODEL_PARAMETERS[p.name].admissible}")
-                changes[p.name] = p.value
-            elif not self.has_parameter(p.name):
-                name = p.name if len(p.name) <= 100 else short_repr(p.name)
-                return self._refuse(f"{name}: unknown parameter of the model node "
-                                    f"(expected one of {list(MODEL_PARAMETERS)})")
-        if not changes:
-            return SetParametersResult(successful=True)  # e.g. use_sim_time
-        values = {**self._values(), **changes}
-        clear: str | None = None
-        for key, other in (("A", "B"), ("B", "A")):
-            if (key in changes and _is_empty(changes[key]) and other not in changes
-                    and not _is_empty(values[other])):
-                values[other], clear = None, other  # emptying one clears the linear model
+    @staticmethod
+    def _changes(params: list[Parameter]) -> dict[str, Any]:
+        """A request's parameters as a change set (name -> value; unset: :data:`UNSET`)."""
+        return {p.name: UNSET if p.type_ == Parameter.Type.NOT_SET else p.value
+                for p in params}
+
+    def _complete(self, params: list[Parameter]) -> list[Parameter]:
+        """Pre-set callback: the A/B rule's partner joins the same transaction (emptying
+        ``A`` alone empties ``B`` too, :func:`~dvt_model.config.partner_clears`)."""
         try:
-            predictor, desc = build_predictor(values)
+            extra = partner_clears(self._values(), self._changes(params))
+        except Exception as exc:  # never raise in rclpy's callback: on_set refuses the set
+            self.get_logger().warning(f"parameter request not completed: {exc!r}")
+            return params
+        return [*params, *(Parameter(n, Parameter.Type.DOUBLE_ARRAY, []) for n in extra)]
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        """On-set callback: validate the request's whole set together (one transaction,
+        :func:`~dvt_model.config.model_transaction`) and stage its predictor; nothing is
+        applied here (rclpy stores the values only if every on-set callback accepts)."""
+        self._staged = None
+        try:
+            self._staged = model_transaction(self._values(), self._changes(params),
+                                             self.has_parameter)
         except _REFUSABLE as exc:
             return self._refuse(str(exc))
-        self._guard_before += self.predictor.guard_reanchors
-        self.predictor, self.model_desc = predictor, desc
-        self._clear_next = clear
-        # a push or rollback: learn the new model's residual (the last alarm's WARN hold stays)
-        self._reset_detector("model")
-        self.get_logger().info(f"model changed: {desc}, mode {predictor.mode}")
         return SetParametersResult(successful=True)
 
-    def _after_set(self, params: list[Parameter]) -> None:
-        clear, self._clear_next = self._clear_next, None
-        if clear is not None:
-            self.set_parameters([Parameter(clear, Parameter.Type.DOUBLE_ARRAY, [])])
+    def _apply(self, params: list[Parameter]) -> None:
+        """Post-set callback: rclpy stored the accepted set; run its model from now on (one
+        predictor swap, one detector reset; nothing to do for non-model parameters)."""
+        tx, self._staged = self._staged, None
+        if tx is None:
+            return
+        self._guard_before += self.predictor.guard_reanchors
+        self.predictor, self.model_desc = tx.predictor, tx.description
+        # a push or rollback: learn the new model's residual (the last alarm's WARN hold stays)
+        self._reset_detector("model")
+        self.get_logger().info(f"model changed ({', '.join(tx.changed)}): "
+                               f"{tx.description}, mode {tx.predictor.mode}")
 
     def _on_msg(self, raw: Any, slot: int) -> None:
         """One serialised message (``bytes`` of a raw subscription) of ``/dvt/joint_states``
