@@ -53,7 +53,7 @@ if [ "$dev" = 1 ]; then
 else
   quiet "${pipq[@]}" -r requirements.txt
 fi
-for pkg in dvt_model dvt_driver dvt_identify; do
+for pkg in dvt_model dvt_identify dvt_driver; do  # dependency order (dvt_driver.system uses dvt_identify)
   quiet "${pipq[@]}" --no-deps --no-build-isolation --config-settings editable_mode=compat -e "src/$pkg"
 done
 quiet "$venv/bin/python" -c "import rclpy, sensor_msgs.msg, rosbags, scipy, dvt_model, dvt_driver, dvt_identify"

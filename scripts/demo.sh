@@ -7,4 +7,4 @@ cd "$root"
 bash scripts/bootstrap.sh
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $$ % 100 + 100 ))}"
-exec "$root/.venv/bin/python" -m dvt_identify.demo "${1:-demo-out}"
+exec "$root/.venv/bin/python" -m dvt_driver.system.demo "${1:-demo-out}"

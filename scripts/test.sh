@@ -10,6 +10,7 @@ echo "== ruff" >&2
 ruff check src tests examples
 echo "== mypy" >&2
 mypy src/dvt_model/dvt_model src/dvt_driver/dvt_driver src/dvt_identify/dvt_identify
+lint-imports  # the dependency rules of pyproject.toml [tool.importlinter]
 echo "== pytest" >&2
 # each topic-level test picks its own ROS_DOMAIN_ID; keep discovery on this machine
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST

@@ -15,10 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from conftest import Procs, wait_for
-from dvt_model.recording import read_run, sample_period
+from dvt_model.recording import (
+    changes_applied,
+    read_run,
+    read_run_info,
+    read_truth,
+    sample_period,
+)
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -37,7 +42,7 @@ from dvt_model.recording import read_run, sample_period
 ])
 def test_launch_refuses_bad_arguments(args: list[str], message: str,
                                       capsys: pytest.CaptureFixture[str]) -> None:
-    from dvt_driver.run.launch import parse_args
+    from dvt_driver.system.launch_args import parse_args
 
     with pytest.raises(SystemExit) as exc:
         parse_args(args)
@@ -47,7 +52,7 @@ def test_launch_refuses_bad_arguments(args: list[str], message: str,
 
 def test_launch_refuses_an_existing_recording(tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
-    from dvt_driver.run.launch import parse_args
+    from dvt_driver.system.launch_args import parse_args
 
     with pytest.raises(SystemExit):
         parse_args(["sim", "--record", str(tmp_path)])
@@ -99,10 +104,11 @@ def test_launch_records_an_experiment_end_to_end(procs: Procs, tmp_path: Path) -
     # the experiment really drove the plant: band 1 applied, motor current reversed
     assert run.currents[:, 1].max() > 0.3  # gear 1 holds its band at 0.5 A
     assert run.currents[:, 0].min() < -1.0 and run.currents[:, 0].max() > 1.0
-    truth = yaml.safe_load((bag / "truth.yaml").read_text())
-    assert truth["effects"] == ["coulomb_friction"]
+    truth = read_truth(bag)
+    assert truth is not None and truth["effects"] == ["coulomb_friction"]
     assert truth["plant"]["seed"] == 4 and truth["plant"]["sample_period_us"] == 1000
-    made = yaml.safe_load((bag / "run.yaml").read_text())
+    made = read_run_info(bag)
+    assert made is not None
     assert made["experiment"]["name"] == "smoke" and made["experiment_status"] == 0
     assert made["hidden"] == "coulomb"
     # the bag holds the whole experiment: its first command (t = 0) comes after the first
@@ -165,12 +171,11 @@ def test_launch_with_a_plant_change_and_a_ring(procs: Procs, tmp_path: Path) -> 
     assert set(pids) == {"plant", "driver", "model", "recorder", "ring"}
     for name, pid in pids.items():
         assert _gone(pid), f"{name} (pid {pid}) still running"
-    truth = yaml.safe_load((bag / "truth.yaml").read_text())
-    (applied,) = truth["changes_applied"]
+    (applied,) = changes_applied(read_truth(bag))
     assert applied["at_s"] == pytest.approx(3.0, abs=0.002)
     assert applied["change"]["coulomb"] == {"sun": 0.05, "carrier3": 0.2}
     assert applied["unix_s"] > 1.6e9
-    assert yaml.safe_load((bag / "run.yaml").read_text())["plant_changes"] == ["3:coulomb"]
+    assert (read_run_info(bag) or {}).get("plant_changes") == ["3:coulomb"]
     segments = sorted(ring.glob("seg-*"))
     assert len(segments) >= 2, list(ring.iterdir())
     ring_log = (tmp_path / "logs" / "ring.log").read_text()

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from conftest import Procs
-from dvt_driver.run.bench_loop import (
+from dvt_driver.system.bench_loop import (
     DETECTOR_SETTLE_S,
     analyse_episode,
     episode_launch_args,

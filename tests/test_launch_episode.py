@@ -3,7 +3,7 @@
 One launcher as a subprocess (its own process group, this test's ``ROS_DOMAIN_ID``): the clean
 simulated plant at 250 Hz, the model node with the plant's own parameters as its prior, the
 ``watch`` experiment, the ring recorder and the identifier with its supervisor
-(:func:`dvt_driver.run.bench_loop.episode_launch_args`); at plant time ``CHANGE_AT_S`` the
+(:func:`dvt_driver.system.bench_loop.episode_launch_args`); at plant time ``CHANGE_AT_S`` the
 plant's Coulomb friction steps (``friction_step``). The test waits (at most ``DEADLINE_S``)
 for the episode report of that change, stops the launcher (SIGINT: it stops its children in
 order; SIGKILL of the group as the fallback) and checks: the change detected after the
@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from conftest import Procs
-from dvt_driver.run.bench_loop import (
+from dvt_driver.system.bench_loop import (
     analyse_episode,
     change_episode,
     episode_launch_args,

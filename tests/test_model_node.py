@@ -455,7 +455,7 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
     and the latched alarm (the status goes from WARN/testing to OK/learning at once), the next
     samples teach it a new reference (no anchor), the reset is logged with the text
     ``dvt-bench loop`` looks for, and a node whose detector is off refuses with the reason."""
-    from dvt_driver.run.bench_loop import _rearm_time
+    from dvt_driver.system.bench_loop import _rearm_time
     from dvt_model.contract import RESET_DETECTOR_LOG, model_reset_detector_service
     from dvt_model.node import DETECTOR_STATUS
 

@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer='dvt developers',
     maintainer_email='dvt@example.com',
-    description='DVT serial link: wire protocol, lifecycle driver node, simulated plant, experiments, recorder and launcher',
+    description='DVT serial link: wire protocol, lifecycle driver node, simulated plant, experiments, recorder, and the integration layer (launcher, loop benchmark, demo, dvt-bench)',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={'console_scripts': [
@@ -26,8 +26,9 @@ setup(
         'dvt-experiment = dvt_driver.run.experiment:main',
         'dvt-recorder = dvt_driver.recording.node:main',
         'dvt-bag = dvt_driver.recording.bagtool:main',
-        'dvt-launch = dvt_driver.run.launch:main',
+        'dvt-launch = dvt_driver.system.launch:main',
         'dvt-foxglove = dvt_driver.run.foxglove:main',
         'dvt-discovery = dvt_driver.run.discovery:main',
+        'dvt-bench = dvt_driver.system.bench:main',
     ]},
 )

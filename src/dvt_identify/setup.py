@@ -24,6 +24,6 @@ setup(
         'dvt-identify = dvt_identify.cli:main',
         'dvt_identify_node = dvt_identify.node:main',
         'dvt-import = dvt_identify.importer:main',
-        'dvt-bench = dvt_identify.bench:main',
+        'dvt-identify-batch = dvt_identify.batch_cli:main',
     ]},
 )

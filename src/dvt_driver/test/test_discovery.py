@@ -105,7 +105,7 @@ def test_cli_env_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_launch_discovery_options() -> None:
-    from dvt_driver.run.launch import parse_args
+    from dvt_driver.system.launch_args import parse_args
 
     a = parse_args(["sim", "--start-discovery-server", "11888"])
     assert a.discovery_env == {"ROS_DISCOVERY_SERVER": "127.0.0.1:11888"}

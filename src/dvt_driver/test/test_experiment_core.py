@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from dvt_driver.errors import ExperimentError
+from dvt_driver.hardware import RPM
 from dvt_driver.link.safety import Limits as DriverLimits
 from dvt_driver.plant.hidden import load_hidden
 from dvt_driver.plant.offline import run_offline
 from dvt_driver.run import experiment_core as ec
 from dvt_driver.run.experiment_core import (
-    RPM,
     BrakeCurrents,
     Experiment,
     Gear,
@@ -100,16 +100,10 @@ def test_limits_are_enforced_with_exact_messages() -> None:
     assert Limits().brake_current == pytest.approx(hw.max_brake_current)
 
 
-def test_prbs_is_a_maximum_length_sequence() -> None:
-    order = 7
-    n = 2 ** order - 1
-    x = ec.prbs_signal(2 * n, order, seed=5)
-    assert set(np.unique(x)) == {-1.0, 1.0}
-    np.testing.assert_array_equal(x[:n], x[n:])  # period 2^order - 1
-    assert x[:n].sum() == 1.0  # one more +1 than -1 over a period
-    # circular autocorrelation is -1/n off the zero lag: a flat spectrum
-    r = np.array([np.dot(x[:n], np.roll(x[:n], k)) for k in range(1, n)]) / n
-    np.testing.assert_allclose(r, -1.0 / n)
+def test_prbs_signal_is_the_shared_generator_with_the_experiment_error() -> None:
+    from dvt_model.excitation import prbs
+
+    np.testing.assert_array_equal(ec.prbs_signal(127, 7, seed=5, stream=3), prbs(127, 7, 5, 3))
     with pytest.raises(ExperimentError, match="PRBS order: expected 3..24, got 2"):
         ec.prbs_signal(10, 2, seed=0)
 

@@ -11,16 +11,14 @@ import yaml
 from dvt_driver.errors import HiddenEffectsError
 from dvt_driver.plant.hidden import (
     MEMBERS,
-    FrictionForces,
     HiddenEffects,
     StribeckFriction,
     WetBrake,
-    WetBrakeEngagement,
     available_presets,
-    friction_velocity_floor,
     load_hidden,
     parse_hidden,
 )
+from dvt_driver.plant.physics import FrictionForces, WetBrakeEngagement, friction_velocity_floor
 from dvt_model.brake import capacity_step
 
 PRESETS = ["backlash", "coulomb", "delay", "friction_step", "gravity_arm", "mesh_ripple",

@@ -9,15 +9,10 @@ from pathlib import Path
 import pytest
 
 from dvt_driver.errors import ExperimentError
-from dvt_driver.run.bench_loop import LIVE_SUPERVISOR, episode_launch_args
 from dvt_driver.run.experiment_core import Gear, MotorCurrent, build
-from dvt_driver.run.launch import (
-    IDENTIFY_DIR,
-    SUPERVISE_RING_MINUTES,
-    episode_line,
-    episode_reports,
-    parse_args,
-)
+from dvt_driver.system.bench_loop import LIVE_SUPERVISOR, episode_launch_args, episode_reports
+from dvt_driver.system.launch import episode_line
+from dvt_driver.system.launch_args import IDENTIFY_DIR, SUPERVISE_RING_MINUTES, parse_args
 
 
 def test_supervise_implies_a_ring_and_keeps_a_given_one() -> None:

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from dvt_driver.errors import PlantError
+from dvt_driver.hardware import RPM
 from dvt_driver.link.protocol import (
     Ack,
     Command,
@@ -25,7 +26,6 @@ from dvt_driver.link.protocol import (
     Status,
 )
 from dvt_driver.plant.core import (
-    RPM,
     PlantSim,
     SafetyLimits,
     SampleValues,
@@ -376,7 +376,7 @@ def test_backlash_decouples_the_output_on_reversal() -> None:
     # the tachometer reads the output shaft; the clean plant's reads carrier 3 itself
     clean = run(make(None), 1.6, cmd)
     assert all(s.output_true == s.omega_true[1] for s in clean)
-    twist = abs(sim._bl_twist)
+    twist = abs(sim.physics.bl_twist)
     hb = sim.hidden.backlash
     assert hb is not None and twist < hb.gap  # contact penetration stays small
 

@@ -27,21 +27,27 @@ message (also ``--select-on cv`` with fewer than two estimation bags). ``dvt-bag
 PATH`` is suggested only for a bag directory (or ``.mcap`` file) whose MCAP cannot be read.
 
 ``--check`` only asks whether the estimation bags are enough (no fit,
-:mod:`dvt_identify.identifiability`): per parameter of the baseline model whether the recording
-excites it, and for those it does not, the experiment (``dvt-experiment ...``) that would; the
-verdict goes to stdout (``DIR/check.json`` with ``--out``). Exit status 0 either way.
+:mod:`dvt_identify.identifiability`): first the verdict and what is fixed at its prior or not
+determined, each with the experiment the description names for it (its ``experiments``
+section) or generic advice from the data and the model; then the data warnings, every
+parameter's predicted relative standard deviation, and a last line ``enough: yes`` or
+``enough: no, ...``. All on stdout (``DIR/check.json`` with ``--out``). Exit status 0 either
+way.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from dvt_identify.description import DEFAULT_DESCRIPTION
 from dvt_identify.errors import DvtIdentifyError
+from dvt_identify.identifiability import Identifiability
+from dvt_identify.loop import IdentificationResult
 from dvt_identify.pipeline import TerminalProgress, check_recording, run
 from dvt_model.progress import ProgressLine
 
@@ -55,19 +61,87 @@ def error_line(exc: BaseException) -> str:
     return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
+def check_lines(chk: Identifiability, data_warnings: Sequence[str]) -> list[str]:
+    """What ``--check`` prints: the verdict and what is fixed or not determined first, then the
+    data warnings, a table of every parameter's predicted relative std, and the ``enough:``
+    line."""
+    lines = list(chk.summary())
+    lines += [f"warning: {w}" for w in data_warnings]
+    lines.append("parameter: predicted relative std (prior): verdict")
+    for p in chk.parameters:
+        rs = p.predicted_relative_std
+        fig = f"{100 * rs:.3g} %" if math.isfinite(rs) else "infinite"
+        verdict = ("determined" if p.determined else
+                   "not determined, fixed at its prior" if p.fixed else
+                   "not determined, still fitted")
+        lines.append(f"  {p.name}: {fig} ({p.prior:.6g}): {verdict}")
+    if chk.enough:
+        lines.append("enough: yes")
+    else:
+        cmds = chk.experiments()
+        tail = "record " + " and ".join(cmds) if cmds else ""
+        if chk.advice():
+            tail += ("; " if tail else "") + "see the advice above"
+        lines.append(f"enough: no, {tail}")
+    return lines
+
+
 def _check(args: argparse.Namespace) -> int:
     chk, data_warnings = check_recording(args.bags, args.description)
-    for w in data_warnings:
-        print(f"warning: {w}")
-    for line in chk.summary():
+    for line in check_lines(chk, data_warnings):
         print(line)
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         rep = {"estimation_bags": list(args.bags), "warnings": data_warnings, **chk.as_dict()}
         (out / "check.json").write_text(json.dumps(rep, indent=2, allow_nan=False) + "\n")
-    print("enough: " + ("yes" if chk.enough else "no, record " + " and ".join(chk.experiments())))
     return 0
+
+
+def output_units(result: IdentificationResult) -> list[str]:
+    """Each output's unit: the structure's angle unit for an output that is an angle state
+    (``<member>_angle``), else its speed unit ("" when the description names none)."""
+    st = result.description.structure
+    states = getattr(st, "output_states", None) or st.state_names
+    angle = str(getattr(st, "angle_unit", "") or "")
+    return [angle if str(s).endswith("_angle") else (st.speed_unit or "") for s in states]
+
+
+def summary_lines(result: IdentificationResult) -> list[str]:
+    """What ``dvt-identify`` prints when done: the test figures first (when test bags were
+    given: RMSE in the output's unit and fit, the final model and the linear reference side
+    by side), then the selection figures and the accepted effects."""
+    fin = result.final
+    units = output_units(result)
+    ref = result.reference
+    lines = []
+    t = result.test
+    if t is not None:
+        parts = []
+        for j, n in enumerate(t.final.output_names):
+            txt = (f"{n} RMSE {t.final.rmse[j]:.4g} {units[j]} (fit {t.final.fit_percent[j]:.2f} "
+                   "%)").replace("  ", " ")
+            if t.reference is not None:
+                txt += (f", linear reference RMSE {t.reference.rmse[j]:.4g} {units[j]} (fit "
+                        f"{t.reference.fit_percent[j]:.2f} %)").replace("  ", " ")
+            parts.append(txt)
+        lines.append("test (no part in any choice): " + "; ".join(parts))
+    acc = [d.score.label for d in result.accepted] or ["none"]
+    sel = {"validation": "validation fit (selection)",
+           "holdout": "held-out fit (selection)",
+           "cv": "out-of-fold fit (selection, leave-one-bag-out)"}.get(
+               str(getattr(result, "selection", "validation")), "validation fit (selection)")
+    lines.append(f"{sel}: " + ", ".join(
+        f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(fin.val.output_names,
+                                                          result.baseline.val.fit_percent,
+                                                          fin.val.fit_percent, strict=True))
+        + ("" if ref is None else f" (linear reference, order {ref.model.order_}: "
+           + ", ".join(f"{f:.2f} %" for f in ref.val.fit_percent) + ")")
+        + f"; accepted: {', '.join(acc)}")
+    if ref is not None and ref.val.mean_fit > fin.val.mean_fit:
+        lines.append("warning: the physical model scores worse than the linear reference on "
+                     "the selection data (see the report's first lines)")
+    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -82,7 +156,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", help="output directory for the report (required unless --check)")
     ap.add_argument("--check", action="store_true",
                     help="only check whether the bags determine the model's parameters (no "
-                         "fit); names the experiment for those they do not")
+                         "fit); advice for those they do not: the description's experiment "
+                         "or generic advice")
     ap.add_argument("--description", default=DEFAULT_DESCRIPTION,
                     help=f"actuator description: YAML file or bundled name (default "
                          f"{DEFAULT_DESCRIPTION})")
@@ -129,20 +204,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (DvtIdentifyError, OSError) as exc:
         print(f"dvt-identify: error: {error_line(exc)}", file=sys.stderr)
         return EXIT_DATA
-    fin = result.final
-    acc = [d.score.label for d in result.accepted] or ["none"]
-    sel = {"validation": "validation fit (selection)",
-           "holdout": "held-out fit (selection)",
-           "cv": "out-of-fold fit (selection, leave-one-bag-out)"}.get(
-               str(getattr(result, "selection", "validation")), "validation fit (selection)")
-    print(f"{sel}: " + ", ".join(
-        f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(fin.val.output_names,
-                                                          result.baseline.val.fit_percent,
-                                                          fin.val.fit_percent, strict=True))
-          + f"; accepted: {', '.join(acc)}"
-          + ("" if result.test is None else "; test fit (no part in any choice): " + ", ".join(
-              f"{n} {f:.2f} %" for n, f in zip(result.test.final.output_names,
-                                               result.test.final.fit_percent, strict=True))))
+    for text in summary_lines(result):
+        print(text)
     return 0
 
 

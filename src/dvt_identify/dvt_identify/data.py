@@ -44,6 +44,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
 from dvt_identify.errors import DataError
+from dvt_model.errors import BagError, RecordingWarning
+from dvt_model.recording import TopicSeries, is_bag, read_topics, write_topics
 
 Array = NDArray[np.float64]
 FIELDS = ("position", "velocity", "effort")
@@ -79,26 +81,9 @@ class SignalSpec:
     saturation: tuple[float, float] | None = None
 
 
-@dataclass(frozen=True)
-class JointStateSeries:
-    """All messages of one JointState topic.
-
-    Attributes:
-        stamps_ns: ``header.stamp`` in ns, shape (N,), int64.
-        names: joint names (the ``name`` list of the messages; constant over the topic).
-        position, velocity, effort: arrays of shape (N, len(names)) or ``None`` when empty.
-    """
-
-    stamps_ns: NDArray[np.int64]
-    names: tuple[str, ...]
-    position: Array | None = None
-    velocity: Array | None = None
-    effort: Array | None = None
-
-    def field_array(self, name: str) -> Array | None:
-        """The array of ``name`` (one of :data:`FIELDS`)."""
-        return {"position": self.position, "velocity": self.velocity,
-                "effort": self.effort}[name]
+JointStateSeries = TopicSeries
+"""All messages of one JointState topic: :class:`dvt_model.recording.TopicSeries`, the one series
+type (``stamps_ns``, ``names``, ``position``/``velocity``/``effort`` or ``None`` when empty)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,12 +207,12 @@ def make_segment(name: str, t: ArrayLike, u: ArrayLike, y: ArrayLike,
 # Bag I/O
 
 
-def read_jointstate_topics(bag: str | Path, topics: Sequence[str]) -> dict[str, JointStateSeries]:
+def read_jointstate_topics(bag: str | Path, topics: Sequence[str]) -> dict[str, TopicSeries]:
     """Read the JointState ``topics`` of ``bag`` in one pass; other topics are ignored.
 
-    Uses :func:`dvt_model.recording.read_topics` (bulk decoding of the raw CDR); empty fields
-    become ``None``. Values are returned as recorded (no stamp or NaN checks). A killed
-    recording (unfinished MCAP file) is read up to its last complete chunk: its
+    :func:`dvt_model.recording.read_topics` (bulk decoding of the raw CDR; empty fields are
+    ``None``). Values are returned as recorded (no stamp or NaN checks). A killed recording
+    (unfinished MCAP file) is read up to its last complete chunk: its
     :class:`~dvt_model.errors.RecordingWarning` is passed on as a :class:`DataWarning`.
 
     Raises:
@@ -236,9 +221,6 @@ def read_jointstate_topics(bag: str | Path, topics: Sequence[str]) -> dict[str, 
             array lengths change between messages (the message names bag, topic, message index
             and field).
     """
-    from dvt_model.errors import BagError, RecordingWarning
-    from dvt_model.recording import read_topics
-
     path = Path(bag)
     if not path.exists():
         raise DataError(f"{path}: bag not found")
@@ -253,14 +235,10 @@ def read_jointstate_topics(bag: str | Path, topics: Sequence[str]) -> dict[str, 
             warnings.warn(DataWarning(str(w.message)), stacklevel=2)
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return {topic: JointStateSeries(
-        stamps_ns=ser.stamps_ns, names=ser.names,
-        position=ser.position if ser.position.shape[1] else None,
-        velocity=ser.velocity if ser.velocity.shape[1] else None,
-        effort=ser.effort if ser.effort.shape[1] else None) for topic, ser in series.items()}
+    return series
 
 
-def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries],
+def write_jointstate_bag(path: str | Path, topics: Mapping[str, TopicSeries],
                          overwrite: bool = False) -> Path:
     """Write JointState ``topics`` to a new rosbag2/MCAP bag at ``path``.
 
@@ -273,27 +251,16 @@ def write_jointstate_bag(path: str | Path, topics: Mapping[str, JointStateSeries
         DataError: the path exists, or a series has inconsistent shapes (names bag, topic and
             field).
     """
-    from dvt_model.errors import BagError
-    from dvt_model.recording import TopicSeries, write_topics
-
     out = Path(path)
     if out.exists():
-        if overwrite and (out / "metadata.yaml").exists():
+        if overwrite and is_bag(out):
             shutil.rmtree(out)
         else:
             raise DataError(f"{out}: output bag already exists"
                             + ("" if overwrite else " (pass --force to replace it)")
                             + ("" if not overwrite else " and is not a bag directory"))
-
-    def rows(ser: JointStateSeries, fname: str) -> Array:
-        arr = ser.field_array(fname)
-        return np.zeros((ser.stamps_ns.shape[0], 0)) if arr is None else arr
-
     try:
-        return write_topics(out, {topic: TopicSeries(
-            stamps_ns=ser.stamps_ns, names=ser.names, velocity=rows(ser, "velocity"),
-            effort=rows(ser, "effort"), position=rows(ser, "position"))
-            for topic, ser in topics.items()})
+        return write_topics(out, topics)
     except BagError as exc:
         raise DataError(str(exc)) from exc
 

@@ -24,6 +24,8 @@ A description is a YAML file (see ``descriptions/emps.yaml`` for a complete exam
     fit: {starts: 4, refit_starts: 2, alpha: 0.01, min_validation_gain: 0.1, max_effects: 4,
           max_tries_per_round: 3, seed: 0}
     notes: ["free text carried into the report"]
+    experiments:                  # optional: what determines a parameter (see below)
+      - {parameters: "^(M|Fv)$", run: "a 0.1-10 Hz multisine of +-200 N", excites: "the mass"}
 
 Structure types:
 
@@ -51,6 +53,13 @@ Structure types:
   (``where: load``); output effects (sensor maps, delay, gain) on measured outputs
   (``where: w_load``).
 
+``experiments`` (optional) names the actuator's own experiments: a list of ``{parameters:
+REGEX, run: COMMAND OR PROCEDURE, excites: WHAT}``; the first row whose regex matches a
+parameter's name (``re.search``) is the advice for it when a recording does not determine it
+(:mod:`dvt_identify.identifiability`; ``excites`` may use the regex's named groups, ``{n}``).
+Without the section (or without a matching row) the advice is generic, from the data and the
+model.
+
 Otherwise the states are the outputs, in order (C = I). Parameter names must be unique over
 the structure, the model effects and the candidates; a clash is refused on loading, with the
 names. ``load_description`` takes a file path or the name of
@@ -63,6 +72,7 @@ import copy
 import importlib
 import importlib.resources
 import math
+import re
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -127,6 +137,21 @@ class CandidateSpec:
 
 
 @dataclass(frozen=True)
+class ExperimentSpec:
+    """One row of a description's ``experiments`` section.
+
+    Attributes:
+        parameters: regex over parameter names (``re.search``; named groups fill ``excites``).
+        run: the command or procedure that determines them (e.g. ``dvt-experiment ident``).
+        excites: what it excites, for people (may name the regex's groups, ``{n}``).
+    """
+
+    parameters: str
+    run: str
+    excites: str
+
+
+@dataclass(frozen=True)
 class Description:
     """A loaded actuator description (see module docstring)."""
 
@@ -146,6 +171,8 @@ class Description:
     """Further starts of the baseline fit (parameter name -> value; names absent: the initial
     value): the initial values that :meth:`with_initial` replaced (e.g. the thesis prior when
     the refit starts from the model in use)."""
+    experiments: tuple[ExperimentSpec, ...] = ()
+    """The actuator's own experiments (``experiments`` section), in priority order."""
 
     def initial_values(self) -> dict[str, float]:
         """The initial value of every structure and model-effect parameter, by name."""
@@ -440,6 +467,56 @@ def _candidates(raw: Any, states: tuple[str, ...], where: str) -> tuple[Candidat
     return tuple(out)
 
 
+EXPERIMENT_KEYS = ("parameters", "run", "excites")
+"""The keys of one ``experiments`` row, all required."""
+
+
+def _experiments(raw: Any, where: str) -> tuple[ExperimentSpec, ...]:
+    """The ``experiments`` section: a list of ``{parameters, run, excites}`` (none: empty).
+
+    Raises:
+        DescriptionError: naming ``where`` (the file), the row's key and the value.
+    """
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise DescriptionError(f"{where}: expected a list of {{parameters, run, excites}}, "
+                               f"got {raw!r}")
+    out = []
+    for i, row in enumerate(raw):
+        w = f"{where}[{i}]"
+        if not isinstance(row, dict):
+            raise DescriptionError(f"{w}: expected a mapping {{parameters, run, excites}}, "
+                                   f"got {row!r}")
+        unknown = sorted(str(k) for k in row if k not in EXPERIMENT_KEYS)
+        if unknown:
+            raise DescriptionError(f"{w}: unknown key(s) {unknown} (expected "
+                                   f"{', '.join(EXPERIMENT_KEYS)})")
+        vals: dict[str, str] = {}
+        for key in EXPERIMENT_KEYS:
+            v = _req(row, key, w)
+            if not isinstance(v, str) or not v.strip():
+                raise DescriptionError(f"{w}.{key}: expected a non-empty text, got {v!r}")
+            vals[key] = v.strip()
+        try:
+            pattern = re.compile(vals["parameters"])
+        except re.error as exc:
+            raise DescriptionError(f"{w}.parameters: {vals['parameters']!r} is not a regular "
+                                   f"expression: {exc}") from exc
+        try:
+            vals["excites"].format(**{g: "" for g in pattern.groupindex})
+        except (KeyError, IndexError) as exc:
+            raise DescriptionError(f"{w}.excites: {vals['excites']!r} names {exc} that is not "
+                                   f"a named group of parameters {vals['parameters']!r} "
+                                   f"(groups: {sorted(pattern.groupindex) or 'none'}; write "
+                                   "literal braces as {{ }})") from exc
+        except ValueError as exc:
+            raise DescriptionError(f"{w}.excites: {vals['excites']!r} is not a format text: "
+                                   f"{exc} (write literal braces as {{{{ }}}})") from exc
+        out.append(ExperimentSpec(**vals))
+    return tuple(out)
+
+
 def parse_description(data: Any, source: str, text: str = "") -> Description:
     """Build a :class:`Description` from parsed YAML ``data``; errors name ``source``."""
     if not isinstance(data, dict):
@@ -466,7 +543,9 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
                        inputs=inputs, outputs=outputs, structure=structure, candidates=cands,
                        preprocess=preprocess, checks=checks, fit=fopts,
                        notes=tuple(str(n) for n in data.get("notes", []) or []), text=text,
-                       model_effects=model_fx)
+                       model_effects=model_fx,
+                       experiments=_experiments(data.get("experiments"),
+                                                f"{source}: experiments"))
     desc.make_candidates()  # validate names and options now
     desc.make_model_effects()
     desc.check_parameter_names()

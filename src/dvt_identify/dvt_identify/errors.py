@@ -45,3 +45,8 @@ class FitError(DvtIdentifyError, RuntimeError):
 class SupervisorError(DvtIdentifyError, ValueError):
     """A supervisor setting or event is unusable (the message names the parameter, e.g.
     ``supervisor.watch_s``, or the event field, and the value)."""
+
+
+class BatchError(DvtIdentifyError, ValueError):
+    """A ``dvt-identify-batch`` manifest, output folder or cluster is unusable; the message
+    names the file, the job entry and the field (or the scheduler address)."""

@@ -46,8 +46,9 @@ import yaml
 from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
-from dvt_identify.data import FIELDS, JointStateSeries, write_jointstate_bag
+from dvt_identify.data import write_jointstate_bag
 from dvt_identify.errors import DvtIdentifyError, ImportDataError
+from dvt_model.recording import FIELDS, TopicSeries
 
 Array = NDArray[np.float64]
 _EXPR = re.compile(r"^\s*(d(\d*)\(\s*([A-Za-z_][\w.]*)\s*\)|([A-Za-z_][\w.]*))\s*"
@@ -282,7 +283,7 @@ def _parse_range(raw: Any, source: str) -> tuple[int, int | None] | None:
 
 
 def build_topics(cols: Mapping[str, Array], mapping: ImportMapping, src: str,
-                 start_time: float = 0.0) -> dict[str, JointStateSeries]:
+                 start_time: float = 0.0) -> dict[str, TopicSeries]:
     """Evaluate the mapping into JointState series (one per topic).
 
     Raises:
@@ -329,7 +330,7 @@ def build_topics(cols: Mapping[str, Array], mapping: ImportMapping, src: str,
         if s.field in fields:
             raise ImportDataError(f"{src}: {s.topic} {s.joint} {s.field} mapped twice")
         fields[s.field] = evaluate(s.expr, cols, t_all, mapping, src)[keep]
-    out: dict[str, JointStateSeries] = {}
+    out: dict[str, TopicSeries] = {}
     for topic, joints in by_topic.items():
         names = tuple(joints)
         arrays: dict[str, Array | None] = {}
@@ -340,7 +341,7 @@ def build_topics(cols: Mapping[str, Array], mapping: ImportMapping, src: str,
                 raise ImportDataError(f"{src}: topic {topic}: field {f} given for "
                                       f"{', '.join(have)} but not for {', '.join(missing)}")
             arrays[f] = np.column_stack([joints[j][f] for j in names]) if have else None
-        out[topic] = JointStateSeries(stamps_ns=stamps, names=names, **arrays)
+        out[topic] = TopicSeries(stamps_ns=stamps, names=names, **arrays)
     return out
 
 

@@ -175,8 +175,9 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
             (the last 30 % of each estimation segment chooses them) or ``cv`` (leave-one-bag-out
             cross-validation across at least 2 estimation bags); with ``holdout`` and ``cv``
             the validation bags are test data, read after every choice.
-        init_window: test initial states from the first ``init_window`` samples only
-            (benchmark style; 0: the whole segment).
+        init_window: every simulation (fit, selection, test) starts from the state the first
+            ``init_window`` samples of its segment give (benchmark style); 0: initial states
+            estimated (free in the fit).
         series: write ``series.npz`` and ``series/*.csv``
             (:func:`dvt_identify.series.write_series`).
         mcap: also write each segment's series as an MCAP bag with the model topics.
@@ -209,14 +210,19 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
     # is this recording enough? (folds in drop_unexcited_model_effects: unused bands)
     chk = identifiability.check(desc, est)
     desc = identifiability.apply(desc, chk)
-    for line in chk.summary():
+    for line in chk.headline():  # what is fixed or not determined: always shown (stderr)
+        if chk.enough:
+            say(line)
+        else:
+            print(f"[dvt-identify] check: {line}", file=sys.stderr, flush=True)
+    for line in chk.summary()[len(chk.headline()):]:
         say(line)
     check_excitation(est, desc.checks,
                      {s.name: f"{s.topic} {s.field}[{s.joint}]" for s in desc.inputs},
                      used=used_inputs(desc))
     say(f"data read in {time.monotonic() - t0:.1f} s: "
         + ", ".join(f"{Path(s.name).name} {s.n} samples at {1 / s.dt:g} Hz" for s in est + val))
-    cfg = loop_config(desc, augment, starts, fit_decimate)
+    cfg = replace(loop_config(desc, augment, starts, fit_decimate), init_window=init_window)
     if select_on == "holdout":
         fit_part, held = series_mod.holdout_split(est)
         say(f"selection on the held-out last {100 * series_mod.HOLDOUT_FRACTION:g} % of each "
@@ -231,8 +237,9 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
     test: list[Segment] = []
     if test_bags:  # read only now: every choice is made
         _, test = _read([], test_bags, desc, data_warnings)
-        result.test = series_mod.evaluate_test(result.baseline.fit, result.final.fit, test,
-                                               init_window)
+        result.test = series_mod.evaluate_test(
+            result.baseline.fit, result.final.fit, test, init_window,
+            result.reference.model if result.reference is not None else None)
         say("test fit (no part in any choice): " + ", ".join(
             f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(
                 result.test.final.output_names, result.test.baseline.fit_percent,

@@ -43,6 +43,7 @@ from dvt_identify.data import Segment
 from dvt_identify.errors import DataError
 from dvt_identify.fit import OEFit
 from dvt_identify.metrics import Figures, figures
+from dvt_identify.reference import LinearReference
 
 Array = NDArray[np.float64]
 ROLES = ("estimation", "validation", "test")
@@ -88,6 +89,8 @@ class TestFigures:
         baseline, final: the figures (on the samples after the init window).
         baseline_pred, final_pred: simulated outputs per segment (whole segment, (N, ny)).
         scored_from: first sample of each segment that the figures count.
+        reference: the linear reference's figures on the same samples, with the same
+            initial-state rule (``None``: no reference).
     """
 
     bags: list[str]
@@ -97,6 +100,7 @@ class TestFigures:
     baseline_pred: list[Array]
     final_pred: list[Array]
     scored_from: int
+    reference: Figures | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready."""
@@ -106,7 +110,9 @@ class TestFigures:
                                   "each segment (benchmark style); figures on the rest"
                                   if self.init_window else "estimated from each whole segment "
                                   "with the parameters fixed"),
-                "baseline": self.baseline.as_dict(), "final": self.final.as_dict()}
+                "baseline": self.baseline.as_dict(), "final": self.final.as_dict(),
+                "linear_reference": (self.reference.as_dict() if self.reference is not None
+                                     else None)}
 
 
 def _predict(fit: OEFit, seg: Segment, init_window: int) -> Array:
@@ -121,8 +127,10 @@ def _predict(fit: OEFit, seg: Segment, init_window: int) -> Array:
 
 
 def evaluate_test(baseline: OEFit, final: OEFit, test: Sequence[Segment],
-                  init_window: int = 0) -> TestFigures:
-    """The figures of ``baseline`` and ``final`` on ``test`` (see :class:`TestFigures`).
+                  init_window: int = 0, reference: LinearReference | None = None
+                  ) -> TestFigures:
+    """The figures of ``baseline`` and ``final`` (and of the linear ``reference``) on ``test``
+    (see :class:`TestFigures`).
 
     Raises:
         DataError: no test segments, or an init window that leaves too little to score.
@@ -134,10 +142,14 @@ def evaluate_test(baseline: OEFit, final: OEFit, test: Sequence[Segment],
     fp = [_predict(final, s, w) for s in test]
     names = test[0].output_names
     ys = [s.y[w:] for s in test]
+    ref = None
+    if reference is not None:
+        rp = [reference.predict(s, w) for s in test]
+        ref = figures(ys, [p[w:] for p in rp], reference.n_estimated_, names)
     return TestFigures(bags=[s.name for s in test], init_window=w,
                        baseline=figures(ys, [p[w:] for p in bp], baseline.n_estimated_, names),
                        final=figures(ys, [p[w:] for p in fp], final.n_estimated_, names),
-                       baseline_pred=bp, final_pred=fp, scored_from=w)
+                       baseline_pred=bp, final_pred=fp, scored_from=w, reference=ref)
 
 
 # ---------------------------------------------------------------------------------------------

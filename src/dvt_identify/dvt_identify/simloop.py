@@ -8,11 +8,22 @@ on the previous one. These kernels run that loop in machine code;
 :func:`dvt_identify.simulation.simulate_loop` prepares their arrays (and can run the same source
 in the interpreter, ``reference=True``, to check the compilation).
 
-Smooth laws are coded as ``(kind, p0, p1)`` (:data:`STRIBECK`, :data:`WINDAGE`,
-:data:`ABS_VISCOUS`); :func:`smooth_value` evaluates one, compiled or from Python. The laws
-themselves are :mod:`dvt_model.friction`'s (the one friction law of the suite), compiled here
-with ``numba.njit`` unchanged; a member force is minus the resisting force of the law, and a
-sliding dry member feels ``-coulomb(s, C, 0, 0)`` (the exact sign).
+Smooth laws are coded as ``(kind, p0, p1, p2)`` (:data:`STRIBECK`, :data:`WINDAGE`,
+:data:`ABS_VISCOUS`, :data:`COULOMB`); :func:`smooth_value` evaluates one, compiled or from
+Python. The laws themselves are :mod:`dvt_model.friction`'s (the one friction law of the
+suite), compiled here with ``numba.njit`` unchanged; a member force is minus the resisting force
+of the law, and a sliding dry member feels ``-coulomb(s, C, 0, 0)`` (the exact sign).
+
+A dry law with a smoothed sign (``tanh(s / eps)``, ``eps > 0``: :data:`COULOMB`, and
+:data:`STRIBECK` with ``p2 = eps > 0``) is *stiff*: near ``s = 0`` it acts like a damper
+``Fc / eps``, which an explicit hold over a step makes chatter (the speed flips sign every step
+at ``|s| ~ dt mobility Fc``) once ``dt * mobility * Fc / eps`` exceeds about 2. Its force is
+held at its value at the step's *end* instead (backward Euler for that force, the exact ZOH for
+the rest): the member speed ``s+`` solves ``s+ = b + kappa g(s+)``, with ``b`` the speed the
+step reaches without this force and ``kappa = c . Gd F c > 0`` the step's own member response;
+``g`` decreases, so the root is unique, found by Newton steps kept inside a bracket
+(:func:`implicit_force`). The step is then stable and free of chatter at any rate. The other
+laws are held at their start value (explicit, unchanged).
 
 The rule implemented: the linear part is advanced by its exact ZOH map, every member force is
 evaluated at the start of a step and held over it; a sliding member whose speed would cross zero
@@ -35,13 +46,16 @@ from dvt_model import backlash, friction
 Array = NDArray[np.float64]
 
 STRIBECK = 0
-"""``g(s) = -stribeck(s, p0, p1, eps=0)`` = ``-p0 exp(-(s/p1)^2) sign(s)`` (``p0 = Fs``,
-``p1 = vs > 0``)."""
+"""``g(s) = -stribeck(s, p0, p1, eps=p2)`` = ``-p0 exp(-(s/p1)^2) sign_eps(s)`` (``p0 = Fs``,
+``p1 = vs > 0``, ``p2 = eps >= 0``: 0 the exact sign, held with the stick rule's break-away)."""
 WINDAGE = 1
 """``g(s) = -windage(s, p0)`` = ``-p0 s |s|`` (``p0 = Cw``)."""
 ABS_VISCOUS = 2
 """``g(s) = -abs_viscous(s, p0)`` = ``-p0 |s|`` (``p0 = dFv``)."""
-KINDS = (STRIBECK, WINDAGE, ABS_VISCOUS)
+COULOMB = 3
+"""``g(s) = -coulomb(s, p0, 0, eps=p1)`` = ``-p0 tanh(s/p1)`` (``p0 = Fc``, ``p1 = eps > 0``):
+dry friction with a smoothed sign, no stick rule."""
+KINDS = (STRIBECK, WINDAGE, ABS_VISCOUS, COULOMB)
 
 _stribeck = njit(cache=True, nogil=True)(friction.stribeck)
 _windage = njit(cache=True, nogil=True)(friction.windage)
@@ -51,15 +65,81 @@ _spline_substep = njit(cache=True, nogil=True)(backlash.spline_substep)
 
 
 @njit(cache=True, nogil=True)
-def smooth_value(kind: int, p0: float, p1: float, s: float) -> float:
+def smooth_value(kind: int, p0: float, p1: float, p2: float, s: float) -> float:
     """Member force of a coded smooth law at member speed ``s`` [force unit]."""
     if kind == 0:
         if s == 0.0:
             return 0.0
-        return -_stribeck(s, p0, p1, 0.0, 2.0)
+        return -_stribeck(s, p0, p1, p2, 2.0)
     if kind == 1:
         return -_windage(s, p0)
+    if kind == 3:
+        return -_coulomb(s, p0, 0.0, p1)
     return -_abs_viscous(s, p0)
+
+
+@njit(cache=True, nogil=True)
+def smooth_slope(kind: int, p0: float, p1: float, p2: float, s: float) -> float:
+    """``d g / d s`` of a stiff law (a smoothed sign: :data:`COULOMB`, :data:`STRIBECK` with
+    ``p2 > 0``) at member speed ``s``; 0 for the laws held explicitly."""
+    if kind == 3 and p1 > 0.0:
+        t = np.tanh(s / p1)
+        return -p0 * (1.0 - t * t) / p1
+    if kind == 0 and p2 > 0.0:
+        e = np.exp(-(s / p1) ** 2)
+        t = np.tanh(s / p2)
+        return -p0 * e * ((1.0 - t * t) / p2 - 2.0 * s / (p1 * p1) * t)
+    return 0.0
+
+
+@njit(cache=True, nogil=True)
+def stiff(kind: int, p2: float, p1: float) -> bool:
+    """Whether a coded law has a smoothed sign (held implicitly, module docstring)."""
+    return (kind == 3 and p1 > 0.0) or (kind == 0 and p2 > 0.0)
+
+
+@njit(cache=True, nogil=True)
+def _value_slope(kind: int, p0: float, p1: float, p2: float, s: float) -> tuple[float, float]:
+    """A stiff law's force and its slope at ``s`` (one evaluation of the transcendentals)."""
+    if kind == 3:
+        t = np.tanh(s / p1)
+        return -p0 * t, -p0 * (1.0 - t * t) / p1
+    e = np.exp(-(s / p1) ** 2)
+    t = np.tanh(s / p2)
+    return -p0 * e * t, -p0 * e * ((1.0 - t * t) / p2 - 2.0 * s / (p1 * p1) * t)
+
+
+@njit(cache=True, nogil=True)
+def implicit_force(kind: int, p0: float, p1: float, p2: float, b: float, kap: float,
+                   s0: float) -> float:
+    """The stiff law's force at the step's end: ``g(s+)`` with ``s+ = b + kap g(s+)``
+    (``kap > 0``), solved by Newton steps kept in the bracket ``[b - kap |g|max,
+    b + kap |g|max]`` (bisection where a step leaves it), from the explicit estimate
+    ``b + kap g(s0)`` (exact while the member slides far from zero speed)."""
+    gmax = abs(p0)
+    lo = b - kap * gmax
+    hi = b + kap * gmax
+    g, _ = _value_slope(kind, p0, p1, p2, s0)
+    s = min(max(b + kap * g, lo), hi)
+    tol = 1e-12 * (abs(b) + kap * gmax) + 1e-300
+    for _ in range(60):
+        g, dg = _value_slope(kind, p0, p1, p2, s)
+        h = s - b - kap * g
+        if h > 0.0:
+            hi = s
+        else:
+            lo = s
+        if abs(h) <= tol:
+            return g
+        sn = s - h / (1.0 - kap * dg)
+        if not (lo < sn < hi):
+            sn = 0.5 * (lo + hi)
+        if abs(sn - s) <= tol:
+            s = sn
+            break
+        s = sn
+    g, _ = _value_slope(kind, p0, p1, p2, s)
+    return g
 
 
 @njit(cache=True, nogil=True)
@@ -97,7 +177,7 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
         d: ``w @ Gd.T``, shape (N, nx).
         x0: initial state, shape (nx,).
         sc, skind, spar, sgd, sfc: smooth forces: member vectors (ns, nx), law codes (ns,),
-            law parameters (ns, 2), ``Gd F c`` (ns, nx), ``F c`` (ns, nx).
+            law parameters (ns, 3), ``Gd F c`` (ns, nx), ``F c`` (ns, nx).
         dc, dcap, dbrk, dgdf, dfcv, dcfc: dry members (one per distinct member): vectors
             (nd, nx), capacity per sample (nd, N), break-away (nd,), ``Gd F c`` (nd, nx),
             ``F c`` (nd, nx), ``c . F c`` (nd,).
@@ -124,11 +204,22 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
             xn[i] = acc + d[k, i]
             extra[i] = 0.0
         for m in range(ns):
-            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], _dot(sc[m], x))
+            if stiff(skind[m], spar[m, 2], spar[m, 1]):
+                continue
+            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], spar[m, 2], _dot(sc[m], x))
             if tau != 0.0:
                 for i in range(nx):
                     xn[i] += sgd[m, i] * tau
                     extra[i] += sfc[m, i] * tau
+        for m in range(ns):  # stiff laws: held at the step's end (module docstring)
+            if not stiff(skind[m], spar[m, 2], spar[m, 1]):
+                continue
+            kap = _dot(sc[m], sgd[m])
+            tau = implicit_force(skind[m], spar[m, 0], spar[m, 1], spar[m, 2],
+                                 _dot(sc[m], xn), kap, _dot(sc[m], x))
+            for i in range(nx):
+                xn[i] += sgd[m, i] * tau
+                extra[i] += sfc[m, i] * tau
         for g in range(nd):
             cap = dcap[g, k]
             cfc = dcfc[g]
@@ -189,7 +280,7 @@ def loop_scalar(a: float, ad: float, w: Array, d: Array, x0: float,
         w, d: generalised input and its ZOH response, shape (N,).
         x0: initial state.
         sc, skind, spar, sgd: smooth forces: member coefficients (ns,), law codes (ns,), law
-            parameters (ns, 2), ``Gd F c`` (ns,).
+            parameters (ns, 3), ``Gd F c`` (ns,).
         has_dry: whether there is any dry friction.
         cap: generalised dry capacity per sample, shape (N,).
         brk: generalised break-away.
@@ -209,10 +300,19 @@ def loop_scalar(a: float, ad: float, w: Array, d: Array, x0: float,
         xn = ad * x + d[k]
         extra = 0.0
         for m in range(ns):
-            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], sc[m] * x)
+            if stiff(skind[m], spar[m, 2], spar[m, 1]):
+                continue
+            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], spar[m, 2], sc[m] * x)
             if tau != 0.0:
                 xn += sgd[m] * tau
                 extra += tau * sc[m]
+        for m in range(ns):  # stiff laws: held at the step's end (module docstring)
+            if not stiff(skind[m], spar[m, 2], spar[m, 1]):
+                continue
+            tau = implicit_force(skind[m], spar[m, 0], spar[m, 1], spar[m, 2], sc[m] * xn,
+                                 sc[m] * sgd[m], sc[m] * x)
+            xn += sgd[m] * tau
+            extra += tau * sc[m]
         if has_dry:
             c = cap[k]
             if not rest and x != 0.0:
@@ -313,9 +413,9 @@ def warm_up() -> None:
     e2 = np.zeros((0, 2))
     e1 = np.zeros(0)
     ek = np.zeros(0, dtype=np.int64)
-    loop_members(z2, z2, z2, z2, np.zeros(2), e2, ek, np.zeros((0, 2)), e2, e2, e2,
+    loop_members(z2, z2, z2, z2, np.zeros(2), e2, ek, np.zeros((0, 3)), e2, e2, e2,
                  np.zeros((0, 2)), e1, e2, e2, e1)
-    loop_scalar(0.0, 1.0, np.zeros(2), np.zeros(2), 0.0, e1, ek, np.zeros((0, 2)), e1,
+    loop_scalar(0.0, 1.0, np.zeros(2), np.zeros(2), 0.0, e1, ek, np.zeros((0, 3)), e1,
                 False, np.zeros(2), 0.0, 1.0, 1.0, 0.0)
     spline_load(np.zeros(2), 1e-3, 0.0, 1.0, 1.0, 2)
     first_order_lag(np.zeros(2), 0.5)

@@ -131,8 +131,8 @@ class DivergedError(FitError, ValueError):
     ``ValueError`` (:mod:`dvt_identify.drift`) keep doing so."""
 
 
-SmoothLaw = tuple[int, float, float]
-"""A coded smooth member force ``(kind, p0, p1)`` (:mod:`dvt_identify.simloop`)."""
+SmoothLaw = tuple[int, float, float, float]
+"""A coded smooth member force ``(kind, p0, p1, p2)`` (:mod:`dvt_identify.simloop`)."""
 
 
 def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, x0: Array,
@@ -147,7 +147,8 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
         w: generalised input ``B u_eff + F f_exo`` per sample [state unit/s], shape (N, nx).
         d: ``w @ Gd.T``, shape (N, nx).
         x0: initial state, shape (nx,).
-        smooth: (member c, law) pairs: force ``g(c.x)`` with the law coded ``(kind, p0, p1)``.
+        smooth: (member c, law) pairs: force ``g(c.x)`` with the law coded
+            ``(kind, p0, p1, p2)``.
         dry: (member c, capacity (number or shape (N,)), breakaway) triples; capacities of
             the same member add up.
         reference: run the kernels' Python source in the interpreter instead of the compiled
@@ -173,8 +174,8 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
     sc = np.array([np.asarray(c, np.float64) for c, _ in smooth],
                   dtype=np.float64).reshape(ns, nx)
     skind = np.array([int(law[0]) for _, law in smooth], dtype=np.int64)
-    spar = np.array([[float(law[1]), float(law[2])] for _, law in smooth],
-                    dtype=np.float64).reshape(ns, 2)
+    spar = np.array([[float(law[1]), float(law[2]), float(law[3])] for _, law in smooth],
+                    dtype=np.float64).reshape(ns, 3)
     GdF = Gd @ F
     sfc = np.array([F @ c for c in sc], dtype=np.float64).reshape(ns, nx)
     sgd = np.array([GdF @ c for c in sc], dtype=np.float64).reshape(ns, nx)
@@ -192,7 +193,8 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
             fc = float(F[0, 0]) * c0
             gdf_unit = float(Gd[0, 0]) * fc / c0
             fmap = fc / c0
-        extra0 = sum(smooth_value(int(k), float(p[0]), float(p[1]), 0.0) * float(c[0])
+        extra0 = sum(smooth_value(int(k), float(p[0]), float(p[1]), float(p[2]), 0.0)
+                     * float(c[0])
                      for k, p, c in zip(skind, spar, sc, strict=True))
         x = scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].copy(), d[:, 0].copy(),
                    float(x0[0]), sc[:, 0].copy(), skind, spar, sgd[:, 0].copy(), bool(groups),

@@ -5,10 +5,12 @@ When the named candidates leave a structured residual, the loop
 description entry ``{effect: unlisted, where: <member>}`` is a library of generic terms on that
 member
 (:class:`dvt_identify.effects.position.Unlisted`: signs, ``|s| s``, ``s^3``, ``cos/sin`` of shaft
-and mesh orders of the member angle, products with ``sign(s)`` and with the inputs).
+and mesh orders of the member angle, products with ``sign(s)``; and the input side, an actuator
+map: each listed input ``u`` times ``sign(s)``, ``s``, ``|s|`` and ``cos/sin`` of the angle, and
+its powers ``|u| u`` and ``u^3``).
 
 Every term is scored exactly like a named candidate's gain
-(:func:`dvt_identify.loop.score_candidates`): its regressor is the output sensitivity to its
+(:func:`dvt_identify.scoring.score_candidates`): its regressor is the output sensitivity to its
 coefficient at 0 (a finite difference of the full simulation), projected onto the orthogonal
 complement of the current model's Jacobian. A sparse regression then picks terms: orthogonal
 matching pursuit on the projected residual, adding the term most correlated with what is left,
@@ -32,33 +34,51 @@ from dvt_identify.data import Segment
 from dvt_identify.effects.base import Array, SegmentView
 from dvt_identify.effects.position import Unlisted, angle_of
 from dvt_identify.fit import OEFit, Progress
-from dvt_identify.loop import (
+from dvt_identify.scoring import (
     ABSORBED,
     CandidateScore,
-    _candidate_theta,
-    _column,
-    _explained,
+    candidate_theta,
+    column,
+    explained,
     sensitivities,
 )
+
+PROBE = 1e-3
+"""RMS change of the weighted simulated outputs a term's secant step aims at."""
+PROBE_BAND = (0.5, 2.0)
+"""A first step whose output change is within this factor of :data:`PROBE` is the column."""
 
 
 def _term_columns(fit: OEFit, segments: Sequence[Segment], lib: Unlisted,
                   base: Sequence[Array]) -> Array:
     """The scoring regressor of every library term (secant sensitivity of the weighted
-    simulated outputs to its coefficient, probed for its scale like a named gain)."""
+    simulated outputs to its coefficient, probed for its scale like a named gain).
+
+    The step is sized for an output change of :data:`PROBE`. A term's first step is guessed
+    from the output change per unit of term force (RMS of the term's values on the data)
+    that the previous term showed; when the change lands within :data:`PROBE_BAND` of the aim,
+    that simulation is the column (one simulation per term instead of a unit probe and a
+    sized step: the library's cost is about halved), else the step is resized from it."""
     w = fit.weights_
-    model, theta = _candidate_theta(fit, lib, lib.null_vector())
+    model, theta = candidate_theta(fit, lib, lib.null_vector())
     off = len(fit.theta_)
+    views = [SegmentView(s.dt, s.u, s.y, s.angles) for s in segments]
+    phi = np.sqrt(np.mean(np.vstack([lib.regressors(v) for v in views]) ** 2, axis=0))
+    per_force: float | None = None  # output change per unit of term force RMS
     cols = []
     for j in range(len(lib.params)):
-        h = 1.0
+        guessed = per_force is not None and phi[j] > 0
+        h = PROBE / (per_force * float(phi[j])) if guessed and per_force else 1.0
         col = np.zeros(sum(s.n for s in segments) * w.size)
         for _ in range(8):
-            col = _column(model, theta, segments, fit.x0_, base, w, off + j, h)
+            col = column(model, theta, segments, fit.x0_, base, w, off + j, h)
             rms = float(np.sqrt(np.mean(col ** 2)))
             if rms > 0:
-                h = 1e-3 / rms
-                col = _column(model, theta, segments, fit.x0_, base, w, off + j, h)
+                if phi[j] > 0:
+                    per_force = rms / float(phi[j])
+                if not (guessed and PROBE_BAND[0] <= rms * h / PROBE <= PROBE_BAND[1]):
+                    h = PROBE / rms
+                    col = column(model, theta, segments, fit.x0_, base, w, off + j, h)
                 break
             h *= 1e-3
         cols.append(col)
@@ -153,8 +173,8 @@ def search_unlisted(fit: OEFit, segments: Sequence[Segment], libraries: Sequence
         k = len(idx)
         inf = np.full(k, np.inf)
         sel = np.ones(k, dtype=bool)
-        r2, beta, corr = _explained(Zp[:, idx], e_p, ee, -inf, inf, sel)
-        r2_raw, _, corr_raw = _explained(Z[:, idx], e, ee, -inf, inf, sel)
+        r2, beta, corr = explained(Zp[:, idx], e_p, ee, -inf, inf, sel)
+        r2_raw, _, corr_raw = explained(Z[:, idx], e, ee, -inf, inf, sel)
         summary["r2_projected"] = r2
         eff = lib.subset(idx, beta).avoiding(taken)
         implied = {s.name: s.initial for s in eff.params}

@@ -38,8 +38,8 @@ from dvt_identify.effects.position import (
 )
 from dvt_identify.errors import DataError, DescriptionError
 from dvt_identify.fit import OEFit
-from dvt_identify.loop import score_candidates
 from dvt_identify.pipeline import load_segments
+from dvt_identify.scoring import score_candidates
 from dvt_identify.series import holdout_split
 from dvt_identify.simulation import OEModel, zoh_decimate
 from dvt_identify.structures import MechanicalStructure

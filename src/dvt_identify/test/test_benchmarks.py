@@ -124,13 +124,19 @@ def test_fit_for_output_rejects_a_start_outside_the_bounds() -> None:
 
 
 def test_bundled_emps_position_is_a_double_integrator() -> None:
-    """descriptions/emps-position.yaml: states (q, v), A = [[0, 1], [0, -Fv/M]], B = [0, 1/M],
-    effects on the velocity state."""
+    """descriptions/emps-position.yaml: the benchmark's one output, the position of the member
+    ``carriage`` (its speed a hidden state): states (q, v), A = [[0, 1], [0, -Fv/M]],
+    B = [0, 1/M], C = [1, 0], effects on the speed state, dry laws with a smoothed sign."""
     d = load_description("emps-position")
-    assert d.output_names == STATES and d.input_names == ("force",)
+    assert d.output_names == ("position",) and d.input_names == ("force",)
+    assert d.structure.state_names == ("carriage_angle", "carriage")
     A, B, F = d.structure.matrices(np.array([95.0, 200.0]))
     np.testing.assert_allclose(A, [[0.0, 1.0], [0.0, -200.0 / 95.0]], rtol=1e-12)
     np.testing.assert_allclose(B, [[0.0], [1.0 / 95.0]], rtol=1e-12)
     assert F @ np.array([0.0, 1.0]) == pytest.approx([0.0, 1.0 / 95.0])
-    members = {c.name: list(c.member) for c in d.make_candidates() if c.member is not None}
-    assert members["coulomb_friction"] == [0.0, 1.0]
+    np.testing.assert_array_equal(d.structure.output_matrix(), [[1.0, 0.0]])
+    cands = {c.name: c for c in d.make_candidates()}
+    assert list(cands["coulomb_friction"].member) == [0.0, 1.0]
+    assert cands["coulomb_friction"].eps > 0 and cands["stribeck_friction"].eps > 0
+
+

@@ -117,9 +117,11 @@ def test_compiled_smooth_laws_are_the_model_friction_laws() -> None:
     """Compiled, they equal the interpreted laws of dvt_model.friction (up to the last bit of
     a compiled exp)."""
     for v in np.linspace(-30.0, 30.0, 241).tolist():
-        cases = ((simloop.STRIBECK, 0.7, 2.5, friction.stribeck(v, 0.7, 2.5, 0.0)),
-                 (simloop.WINDAGE, 1e-3, 0.0, friction.windage(v, 1e-3)),
-                 (simloop.ABS_VISCOUS, 0.02, 0.0, friction.abs_viscous(v, 0.02)))
-        for kind, p0, p1, law in cases:
-            assert simloop.smooth_value(kind, p0, p1, v) == pytest.approx(-law, rel=1e-12,
-                                                                          abs=0.0)
+        cases = ((simloop.STRIBECK, 0.7, 2.5, 0.0, friction.stribeck(v, 0.7, 2.5, 0.0)),
+                 (simloop.STRIBECK, 0.7, 2.5, 0.3, friction.stribeck(v, 0.7, 2.5, 0.3)),
+                 (simloop.WINDAGE, 1e-3, 0.0, 0.0, friction.windage(v, 1e-3)),
+                 (simloop.ABS_VISCOUS, 0.02, 0.0, 0.0, friction.abs_viscous(v, 0.02)),
+                 (simloop.COULOMB, 0.4, 0.5, 0.0, friction.coulomb(v, 0.4, 0.0, 0.5)))
+        for kind, p0, p1, p2, law in cases:
+            assert simloop.smooth_value(kind, p0, p1, p2, v) == pytest.approx(
+                -law, rel=1e-12, abs=0.0)

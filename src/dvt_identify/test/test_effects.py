@@ -10,7 +10,7 @@ from dvt_identify.data import Segment, make_segment
 from dvt_identify.effects import VOCABULARY, Effect, make_effect
 from dvt_identify.errors import DescriptionError
 from dvt_identify.fit import OEFit
-from dvt_identify.loop import score_candidates
+from dvt_identify.scoring import score_candidates
 from dvt_identify.simulation import OEModel
 from dvt_identify.structures import MechanicalStructure
 

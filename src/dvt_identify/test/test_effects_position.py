@@ -29,7 +29,7 @@ from dvt_identify.effects.position import (
 )
 from dvt_identify.errors import DescriptionError
 from dvt_identify.fit import OEFit
-from dvt_identify.loop import score_candidates
+from dvt_identify.scoring import score_candidates
 from dvt_identify.simulation import OEModel
 from dvt_identify.structures import MechanicalStructure
 from dvt_model.params import load_parameters
@@ -182,7 +182,9 @@ def test_unlisted_library_terms_formula_and_subset() -> None:
     assert isinstance(lib, Unlisted) and lib.library
     names = [s.name for s in lib.params]
     assert names == ["k_sgn_v", "k_absq_v", "k_cube_v", "k_cos1_v", "k_sgn_cos1_v", "k_sin1_v",
-                     "k_sgn_sin1_v", "k_sgn_u_force_v", "k_cos1_u_force_v", "k_sin1_u_force_v"]
+                     "k_sgn_sin1_v", "k_sgn_u_force_v", "k_cos1_u_force_v", "k_sin1_u_force_v",
+                     "k_w_u_force_v", "k_absw_u_force_v", "k_u_force_absq_v",
+                     "k_u_force_cube_v"]
     assert lib.label() == "unlisted@v"
     assert all(s.initial == s.null == 0.0 for s in lib.params)
     prop = lib.subset([0, 4], np.array([0.5, -0.25]))

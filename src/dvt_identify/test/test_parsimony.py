@@ -15,7 +15,8 @@ import pytest
 
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.effects import Effect, make_effect
-from dvt_identify.loop import CandidateScore, Decision, Stage, choose, shape_parameters
+from dvt_identify.loop import Decision, Stage, choose, shape_parameters
+from dvt_identify.scoring import CandidateScore
 
 DT = 0.002
 N = 2000

@@ -109,7 +109,8 @@ def test_integrated_angles_are_not_pushed_and_said() -> None:
     terms = json.loads(push.parameters["effects"])
     # only the term without an angle factor
     assert terms == [{"kind": "library", "member": [1.0, 0.0], "k": 0.03, "order": 0.0,
-                      "eps": 0.5, "speed": "sign", "trig": "", "input": ""}]
+                      "eps": 0.5, "speed": "sign", "trig": "", "input": "",
+                      "input_power": ""}]
     assert len(push.skipped) == 4
     why = ("(its angle is the integrated measured speed (from 0 at the first sample): its "
            "phase is relative to the recording, the model node's angles are the measured "

@@ -23,7 +23,8 @@ from dvt_driver.run.experiment_core import build
 from dvt_identify.data import Segment
 from dvt_identify.description import load_description
 from dvt_identify.fit import OEFit
-from dvt_identify.loop import _column, _explained
+from dvt_identify.scoring import column as _column
+from dvt_identify.scoring import explained as _explained
 from dvt_identify.simulation import DivergedError, OEModel, zoh_decimate
 from dvt_identify.structures import PENALTY
 from dvt_model.params import load_parameters

@@ -59,7 +59,10 @@ def test_cli_test_option_and_refusals(traced: tuple[list[str], Path], tmp_path: 
                str(desc), "--no-plots", "--quiet", "--init-window", "20"])
     assert rc == 0
     out = capsys.readouterr().out
-    assert "test fit (no part in any choice): v " in out
+    first = out.splitlines()[0]
+    # the test figures come first: RMSE in the output's unit and fit, the linear reference beside
+    assert first.startswith("test (no part in any choice): v RMSE "), out
+    assert " m/s (fit " in first and "linear reference RMSE" in first, first
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["test"]["initial_state"].startswith("estimated from the first 20 samples")
     assert (tmp_path / "o" / "series.npz").is_file()

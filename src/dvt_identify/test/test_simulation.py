@@ -93,7 +93,7 @@ def test_compiled_loop_matches_python_loop() -> None:
     """The compiled kernel and its source run by the interpreter give the same states (coupled
     model, Coulomb on a member mixing both states, coded smooth terms and a brake-like
     capacity)."""
-    from dvt_identify.simloop import STRIBECK, WINDAGE
+    from dvt_identify.simloop import COULOMB, STRIBECK, WINDAGE
     from dvt_identify.simulation import simulate_loop
 
     dt = 0.002
@@ -107,8 +107,10 @@ def test_compiled_loop_matches_python_loop() -> None:
     w = u @ B.T
     d = w @ Gd.T
     c = np.array([1.0, -0.4])
-    smooth: list[tuple[np.ndarray, Any]] = [(np.array([0.0, 1.0]), (WINDAGE, 0.3, 0.0)),
-                                            (c, (STRIBECK, 0.4, 0.2))]
+    smooth: list[tuple[np.ndarray, Any]] = [(np.array([0.0, 1.0]), (WINDAGE, 0.3, 0.0, 0.0)),
+                                            (c, (STRIBECK, 0.4, 0.2, 0.0)),
+                                            (np.array([1.0, 0.0]), (COULOMB, 0.3, 0.05, 0.0)),
+                                            (c, (STRIBECK, 0.2, 0.3, 0.02))]
     brake: np.ndarray = np.asarray(6.0 * u[:, 1], dtype=float)
     dry: list[tuple[np.ndarray, np.ndarray | float, float]] = [(c, 3.0, 0.2), (c, brake, 0.0)]
     x0 = np.array([0.5, -0.2])
@@ -121,7 +123,7 @@ def test_compiled_loop_matches_python_loop() -> None:
 def test_compiled_scalar_loop_matches_python_loop() -> None:
     """One state: the compiled scalar kernel (dry members lumped in generalised coordinates)
     equals its interpreted source, with Coulomb, a time-varying capacity and Stribeck."""
-    from dvt_identify.simloop import ABS_VISCOUS, STRIBECK
+    from dvt_identify.simloop import ABS_VISCOUS, COULOMB, STRIBECK
     from dvt_identify.simulation import simulate_loop
 
     dt = 0.001
@@ -133,8 +135,9 @@ def test_compiled_scalar_loop_matches_python_loop() -> None:
     w = (F @ np.atleast_2d(6.0 * np.sin(2 * np.pi * 1.3 * t))).T
     d = w @ Gd.T
     cap = np.asarray(1.0 + 0.5 * (np.sin(0.7 * t) > 0), dtype=float)
-    smooth: list[tuple[np.ndarray, Any]] = [(np.array([1.0]), (STRIBECK, 0.8, 0.3)),
-                                            (np.array([-2.0]), (ABS_VISCOUS, 0.1, 0.0))]
+    smooth: list[tuple[np.ndarray, Any]] = [(np.array([1.0]), (STRIBECK, 0.8, 0.3, 0.0)),
+                                            (np.array([-2.0]), (ABS_VISCOUS, 0.1, 0.0, 0.0)),
+                                            (np.array([1.0]), (COULOMB, 0.3, 0.05, 0.0))]
     dry: list[tuple[np.ndarray, np.ndarray | float, float]] = [(np.array([1.0]), 2.0, 0.0),
                                                                (np.array([-0.5]), cap, 0.0)]
     x0 = np.array([0.3])

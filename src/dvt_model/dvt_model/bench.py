@@ -37,7 +37,6 @@ import gc
 import json
 import math
 import os
-import struct
 import subprocess
 import sys
 import threading
@@ -75,7 +74,7 @@ def run(rate: float, seconds: float, params: str = "physical", detector: bool = 
         SPEED_NAMES,
     )
     from dvt_model.node import stamp_of
-    from dvt_model.recording.cdr import joint_state_cdr
+    from dvt_model.recording.cdr import joint_state_cdr, restamp
 
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
@@ -142,7 +141,7 @@ def run(rate: float, seconds: float, params: str = "physical", detector: bool = 
         stamps = [base_ns + int(k * period * 1e9) for k in range(n)]
         i_m = 4.0 + 2.0 * np.sin(2 * np.pi * np.arange(n) * period)
         js = joint_state_cdr(0, SPEED_NAMES, velocity=(100.0, 20.0))
-        samples = [(stamp, _restamp(js, stamp),
+        samples = [(stamp, restamp(js, stamp),
                     joint_state_cdr(stamp, CURRENT_NAMES, effort=(float(i), 0.0, 0.0, 0.0)))
                    for stamp, i in zip(stamps, i_m.tolist(), strict=True)]
         gc.collect()
@@ -195,12 +194,6 @@ def run(rate: float, seconds: float, params: str = "physical", detector: bool = 
             proc.kill()
 
 
-def _restamp(raw: bytes, stamp_ns: int) -> bytes:
-    """``raw`` (little-endian CDR JointState) with ``header.stamp = stamp_ns``."""
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    return raw[:4] + struct.pack("<iI", sec, nanosec) + raw[12:]
-
-
 STAGES = ("decode", "pairing", "predictor", "messages", "publish", "detector", "glue",
           "total")
 
@@ -220,7 +213,7 @@ def profile(samples: int = 30000, params: str = "physical", detector: bool = Tru
 
     from dvt_model.contract import CURRENT_NAMES, SPEED_NAMES
     from dvt_model.node import ModelNode
-    from dvt_model.recording.cdr import joint_state_cdr
+    from dvt_model.recording.cdr import joint_state_cdr, restamp
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     ctx = Context()
@@ -246,7 +239,7 @@ def profile(samples: int = 30000, params: str = "physical", detector: bool = Tru
     try:
         js = joint_state_cdr(0, SPEED_NAMES, velocity=(100.0, 20.0))
         base = 1_700_000_000_000_000_000
-        stream = [(_restamp(js, base + k * 1_000_000),
+        stream = [(restamp(js, base + k * 1_000_000),
                    joint_state_cdr(base + k * 1_000_000, CURRENT_NAMES,
                                    effort=(4.0 + 2.0 * math.sin(2 * math.pi * k * 1e-3),
                                            0.0, 0.0, 0.0)))

@@ -233,8 +233,11 @@ _MAX_CURRENT = 1e3
 """Largest admissible |k| of a ``library`` term (its unit depends on the factors)."""
 _ORDER = TermParam("order", "1/rev", 0.0, _MAX_ORDER,
                    doc="angle order per member revolution, >= 0")
-LIBRARY_SPEED_FACTORS: tuple[str, ...] = ("", "sign", "abs_sq", "cube")
-"""Speed factors of a ``library`` term: 1, ``sign_eps(v)``, ``|v| v``, ``v^3``."""
+LIBRARY_SPEED_FACTORS: tuple[str, ...] = ("", "sign", "abs_sq", "cube", "lin", "abs")
+"""Speed factors of a ``library`` term: 1, ``sign_eps(v)``, ``|v| v``, ``v^3``, ``v``,
+``|v|``."""
+LIBRARY_INPUT_POWERS: tuple[str, ...] = ("", "abs_sq", "cube")
+"""Powers of a ``library`` term's input ``u``: ``u``, ``|u| u``, ``u^3``."""
 LIBRARY_TRIG: tuple[str, ...] = ("", "cos", "sin")
 """Angle factors of a ``library`` term: 1, ``cos(order theta_a)``, ``sin(order theta_a)``."""
 
@@ -284,14 +287,17 @@ EFFECT_TERMS: dict[str, TermKind] = {k.kind: k for k in (
         _EPS), member=True, driving=True, angle=True,
         choices=(TermChoice("speed", LIBRARY_SPEED_FACTORS, default="",
                             doc="speed factor S(v): '' 1, 'sign' sign_eps(v), 'abs_sq' |v| v, "
-                                "'cube' v^3"),
+                                "'cube' v^3, 'lin' v, 'abs' |v|"),
                  TermChoice("trig", LIBRARY_TRIG, default="",
                             doc="angle factor T: '' 1, 'cos' cos(order theta_a), 'sin' "
                                 "sin(order theta_a)"),
                  TermChoice("input", ("", *CURRENT_NAMES), default="",
                             doc="input factor u [A]: '' 1, else that current of "
-                                "/dvt/currents")),
-        doc="k S(v) T(order theta_a) u"),
+                                "/dvt/currents"),
+                 TermChoice("input_power", LIBRARY_INPUT_POWERS, default="",
+                            doc="power P(u) of the input: '' u, 'abs_sq' |u| u, 'cube' u^3 "
+                                "(ignored without input)")),
+        doc="k S(v) T(order theta_a) P(u)"),
     # lost motion (dvt_model.backlash): on an input current, or between a member and its sensor
     TermKind("dead_zone", (
         TermParam("delta", "A", 0.0, _MAX_CURRENT, doc="half-width of the dead zone, >= 0"),),

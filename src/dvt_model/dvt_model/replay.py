@@ -27,10 +27,11 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-from rosbags.rosbag2 import Reader
 
 from dvt_model import rosutil
 from dvt_model.contract import SAMPLE_TOPICS
+from dvt_model.errors import BagError
+from dvt_model.recording import BagMessages
 
 DEFAULT_TOPICS = SAMPLE_TOPICS
 """The contract's two topics of one controller sample."""
@@ -71,22 +72,21 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.update(flag=True))
     signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
     try:
-        reader = Reader(args.bag)
-        reader.open()
-    except Exception as exc:  # rosbags raises several types; all mean "cannot read"
-        print(f"dvt-replay: {args.bag}: cannot open bag: {exc}", file=sys.stderr)
+        bag = BagMessages(args.bag)
+    except BagError as exc:
+        print(f"dvt-replay: cannot open bag: {exc}", file=sys.stderr)
         return 2
     node = rclpy.create_node("dvt_replay")
     try:
-        conns = [c for c in reader.connections if c.topic in args.topics]
-        missing = sorted(set(args.topics) - {c.topic for c in conns})
+        types = bag.types
+        missing = sorted(set(args.topics) - set(types))
         if missing:
             print(f"dvt-replay: {args.bag}: topic(s) {missing} not in bag", file=sys.stderr)
             return 2
         pubs = {}
-        for c in conns:
-            qos = rosutil.SENSOR_QOS if c.topic in DEFAULT_TOPICS else 10
-            pubs[c.topic] = node.create_publisher(_msg_class(c.msgtype), c.topic, qos)
+        for topic in dict.fromkeys(args.topics):
+            qos = rosutil.SENSOR_QOS if topic in DEFAULT_TOPICS else 10
+            pubs[topic] = node.create_publisher(_msg_class(types[topic]), topic, qos)
         deadline = time.monotonic() + args.wait_timeout
         while args.wait_subscribers > 0 and not stop["flag"]:
             if all(p.get_subscription_count() >= args.wait_subscribers for p in pubs.values()):
@@ -103,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
         skip_ns = round(args.start * 1e9)
         stop_ns = round((args.start + args.duration) * 1e9) if args.duration > 0.0 else None
         first: int | None = None
-        for conn, log_ns, raw in reader.messages(connections=conns):
+        for msg in bag.messages(pubs):
+            log_ns = msg.log_time_ns
             if stop["flag"]:
                 break
             if first is None:
@@ -119,13 +120,16 @@ def main(argv: list[str] | None = None) -> int:
                 delay = due - time.monotonic()
                 if delay > 0.0:
                     time.sleep(delay)
-            pubs[conn.topic].publish(bytes(raw))
+            pubs[msg.topic].publish(msg.data)
             sent += 1
         print(f"dvt-replay: published {sent} messages from {args.bag}", file=sys.stderr)
         time.sleep(0.2)  # let the last best-effort samples leave
         return 0
+    except BagError as exc:
+        print(f"dvt-replay: {exc}", file=sys.stderr)
+        return 2
     finally:
-        reader.close()
+        bag.close()
         node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()

@@ -15,13 +15,16 @@ output transform::
       "b": 0.0, "order": 16},
      {"kind": "library",  "member": [0, 1], "k": 0.05, "speed": "sign", "trig": "cos",
       "order": 1, "input": "drive_motor"},
+     {"kind": "library",  "member": [1, 0], "k": -0.002, "input": "drive_motor",
+      "input_power": "abs_sq"},
      {"kind": "delay",    "seconds": 0.004},
      {"kind": "gain",     "output": 0, "gain": 0.02}]
 
 The schema and its physical admissibility (e.g. ``Fc >= 0``, ``b >= 0``, ``gain > -0.5``,
 ``reduction > 0``, ``order >= 0``, the ``library`` term's ``speed`` in ``'', sign, abs_sq,
-cube``, ``trig`` in ``'', cos, sin``, ``input`` in ``'', drive_motor, brake1, brake2,
-brake3``; at most :data:`~dvt_model.contract.MAX_EFFECT_TERMS` terms) are the contract's
+cube, lin, abs``, ``trig`` in ``'', cos, sin``, ``input`` in ``'', drive_motor, brake1, brake2,
+brake3``, ``input_power`` in ``'', abs_sq, cube``; at most
+:data:`~dvt_model.contract.MAX_EFFECT_TERMS` terms) are the contract's
 (:data:`dvt_model.contract.EFFECT_TERMS`, :func:`~dvt_model.contract.validate_effects`).
 
 Speed-dependent terms (:class:`ForceTerm`, :meth:`Terms.extra_force`): the force laws [N m] are
@@ -36,9 +39,11 @@ forces, so an identified ``a`` is pushed unchanged):
 - ``gravity``: ``tau = a cos(theta_a / reduction) + b sin(theta_a / reduction)``;
 - ``angle_periodic``: ``tau = a cos(order theta_a) + b sin(order theta_a)`` (e.g. a mesh ripple
   on the sun shaft with ``angle`` the sun's angle relative to its carrier);
-- ``library``: ``tau = k S(v) T(order theta_a) u`` with ``S`` 1, ``tanh(v / eps)``,
-  ``|v| v`` or ``v^3``, ``T`` 1, ``cos`` or ``sin`` (``order`` ignored without one), ``u`` 1 or
-  the named current [A] (the inputs held over the step: drive motor, brakes 1-3).
+- ``library``: ``tau = k S(v) T(order theta_a) P(u)`` with ``S`` 1, ``tanh(v / eps)``,
+  ``|v| v``, ``v^3``, ``v`` or ``|v|``, ``T`` 1, ``cos`` or ``sin`` (``order`` ignored without
+  one), ``P(u)`` 1 or the named current ``u`` [A] (the inputs held over the step: drive motor,
+  brakes 1-3), ``|u| u`` or ``u^3`` (``input_power``; an actuator map: a torque constant that
+  saturates, a gain that depends on speed or angle).
 
 Held over a simulation step of length ``dt`` the trigonometric factors are their means over the
 angle interval ``[theta_a, theta_a + (angle . omega) dt]`` (``dt = 0``: the point values), as
@@ -107,14 +112,15 @@ class ForceTerm:
         return float(friction.viscous(v, p["b"]))
 
 
-_SPEED_CODES = {"": 0, "sign": 1, "abs_sq": 2, "cube": 3}
+_SPEED_CODES = {"": 0, "sign": 1, "abs_sq": 2, "cube": 3, "lin": 4, "abs": 5}
+_POWER_CODES = {"": 1, "abs_sq": 2, "cube": 3}
 
 
 @dataclass(frozen=True)
 class AngleTerms:
     """The angle-dependent terms as arrays, one row per elementary term
-    ``tau_j = (A_j Tc_j + B_j Ts_j) S_j(v_j) u_j`` with ``Tc``/``Ts`` the (step-mean) cosine and
-    sine of ``freq_j theta_j``: a ``gravity`` term is ``(a, b, 1 / reduction)``, an
+    ``tau_j = (A_j Tc_j + B_j Ts_j) S_j(v_j) P_j(u_j)`` with ``Tc``/``Ts`` the (step-mean)
+    cosine and sine of ``freq_j theta_j``: a ``gravity`` term is ``(a, b, 1 / reduction)``, an
     ``angle_periodic`` one ``(a, b, order)``, a ``library`` one ``(k, 0, order)`` for ``cos``
     and for no angle factor (``order`` 0), ``(0, k, order)`` for ``sin``.
 
@@ -123,9 +129,11 @@ class AngleTerms:
         angle: angle forms (the trigonometric factors' angle), shape (n, 2).
         freq: angle frequency per radian of the angle, shape (n,).
         a, b: cosine and sine coefficients [N m per unit of the other factors], shape (n,).
-        speed: speed factor code (0 none, 1 ``tanh(v / eps)``, 2 ``|v| v``, 3 ``v^3``), (n,).
+        speed: speed factor code (0 none, 1 ``tanh(v / eps)``, 2 ``|v| v``, 3 ``v^3``, 4 ``v``,
+            5 ``|v|``), shape (n,).
         eps: sign smoothing speed [rad/s], shape (n,).
         input: input index (0 drive motor, 1-3 brakes; :data:`N_INPUTS`: none), shape (n,).
+        power: the input's power code (1 ``u``, 2 ``|u| u``, 3 ``u^3``), shape (n,).
         kinds: the contract kind of each row.
     """
 
@@ -137,6 +145,7 @@ class AngleTerms:
     speed: NDArray[np.int64]
     eps: Array
     input: NDArray[np.int64]
+    power: NDArray[np.int64]
     kinds: tuple[str, ...] = ()
     _rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
 
@@ -145,31 +154,32 @@ class AngleTerms:
         # faster than the numpy expression on arrays this small (the node steps at 1 kHz)
         rows = tuple(
             (float(m[0]), float(m[1]), float(g[0]), float(g[1]), float(fr), float(a), float(b),
-             float(sp), float(e), float(i))
-            for m, g, fr, a, b, sp, e, i in zip(self.member, self.angle, self.freq, self.a,
-                                                self.b, self.speed, self.eps, self.input,
-                                                strict=True))
+             float(sp), float(e), float(i), float(pw))
+            for m, g, fr, a, b, sp, e, i, pw in zip(self.member, self.angle, self.freq, self.a,
+                                                    self.b, self.speed, self.eps, self.input,
+                                                    self.power, strict=True))
         object.__setattr__(self, "_rows", rows)
 
     @classmethod
     def from_terms(cls, terms: Sequence[dict[str, Any]]) -> AngleTerms:
         """Rows from validated ``gravity``/``angle_periodic``/``library`` terms."""
-        rows: list[tuple[float, float, float, int, float, int]] = []
+        rows: list[tuple[float, float, float, int, float, int, int]] = []
         for t in terms:
             kind = t["kind"]
             if kind == "gravity":
                 rows.append((1.0 / float(t["reduction"]), float(t["a"]), float(t["b"]), 0, 1.0,
-                             N_INPUTS))
+                             N_INPUTS, 1))
             elif kind == "angle_periodic":
                 rows.append((float(t["order"]), float(t["a"]), float(t["b"]), 0, 1.0,
-                             N_INPUTS))
+                             N_INPUTS, 1))
             else:  # library
                 trig = t["trig"]
                 k = float(t["k"])
                 order = float(t["order"]) if trig else 0.0
                 inp = CURRENT_NAMES.index(t["input"]) if t["input"] else N_INPUTS
                 rows.append((order, 0.0 if trig == "sin" else k, k if trig == "sin" else 0.0,
-                             _SPEED_CODES[t["speed"]], float(t["eps"]), inp))
+                             _SPEED_CODES[t["speed"]], float(t["eps"]), inp,
+                             _POWER_CODES[t.get("input_power", "")]))
         n = len(rows)
         return cls(member=np.array([t["member"] for t in terms], dtype=float).reshape(n, 2),
                    angle=np.array([t.get("angle", t["member"]) for t in terms],
@@ -180,6 +190,7 @@ class AngleTerms:
                    speed=np.array([r[3] for r in rows], dtype=np.int64),
                    eps=np.array([r[4] for r in rows], dtype=float),
                    input=np.array([r[5] for r in rows], dtype=np.int64),
+                   power=np.array([r[6] for r in rows], dtype=np.int64),
                    kinds=tuple(str(t["kind"]) for t in terms))
 
     def __len__(self) -> int:
@@ -213,7 +224,7 @@ class AngleTerms:
         cos, sin = math.cos, math.sin
         taus: list[float] = []
         f0 = f1 = 0.0
-        for m0, m1, g0, g1, fr, a, b, sp, eps, inp in self._rows:
+        for m0, m1, g0, g1, fr, a, b, sp, eps, inp, pw in self._rows:
             if fr == 0.0:
                 tau = a  # cos(0) = 1, sin(0) = 0
             else:
@@ -228,10 +239,11 @@ class AngleTerms:
                     tau = (a * (s1 - s0) + b * (c0 - c1)) / d
             if sp:
                 v = m0 * w0 + m1 * w1
-                tau *= math.tanh(v / eps) if sp == 1.0 else (abs(v) * v if sp == 2.0
-                                                               else v * v * v)
+                tau *= (math.tanh(v / eps) if sp == 1.0 else abs(v) * v if sp == 2.0
+                        else v * v * v if sp == 3.0 else v if sp == 4.0 else abs(v))
             if inp < N_INPUTS:
-                tau *= uu[int(inp)]
+                x = uu[int(inp)]
+                tau *= x if pw == 1.0 else (abs(x) * x if pw == 2.0 else x * x * x)
             taus.append(tau)
             f0 += m0 * tau
             f1 += m1 * tau

@@ -28,7 +28,7 @@ def test_new_kinds_are_normalised_with_their_defaults() -> None:
         "b": 0.0, "order": 16.0}
     assert validate_term({"kind": "library", "member": [0, 1], "k": 0.5}) == {
         "kind": "library", "member": [0.0, 1.0], "k": 0.5, "order": 0.0, "eps": 0.5,
-        "speed": "", "trig": "", "input": ""}
+        "speed": "", "trig": "", "input": "", "input_power": ""}
     assert EFFECT_TERMS["gravity"].driving and not EFFECT_TERMS["coulomb"].driving
 
 
@@ -49,8 +49,12 @@ def test_new_kinds_are_normalised_with_their_defaults() -> None:
     ({"kind": "angle_periodic", "member": [1, 0], "angle": [0, 0], "a": 1, "b": 0, "order": 1},
      "effects[0].angle: expected 2 finite numbers, not all zero, each |m| <= 1000, got [0, 0]"),
     ({"kind": "library", "member": [0, 1], "k": 1, "speed": "sgn"},
-     "effects[0].speed: expected one of ['', 'sign', 'abs_sq', 'cube'], got 'sgn' (speed "
-     "factor S(v): '' 1, 'sign' sign_eps(v), 'abs_sq' |v| v, 'cube' v^3)"),
+     "effects[0].speed: expected one of ['', 'sign', 'abs_sq', 'cube', 'lin', 'abs'], got "
+     "'sgn' (speed factor S(v): '' 1, 'sign' sign_eps(v), 'abs_sq' |v| v, 'cube' v^3, 'lin' v, "
+     "'abs' |v|)"),
+    ({"kind": "library", "member": [0, 1], "k": 1, "input": "brake1", "input_power": "sq"},
+     "effects[0].input_power: expected one of ['', 'abs_sq', 'cube'], got 'sq' (power P(u) of "
+     "the input: '' u, 'abs_sq' |u| u, 'cube' u^3 (ignored without input))"),
     ({"kind": "library", "member": [0, 1], "k": 1, "trig": "tan"},
      "effects[0].trig: expected one of ['', 'cos', 'sin'], got 'tan' (angle factor T: '' 1, "
      "'cos' cos(order theta_a), 'sin' sin(order theta_a))"),
@@ -103,6 +107,14 @@ def test_point_torques_match_the_hand_computed_laws() -> None:
         {"kind": "library", "member": [1, 0], "k": 1e-5, "speed": "abs_sq"},
         {"kind": "library", "member": [0, 1], "k": 2e-3, "speed": "cube", "trig": "cos",
          "order": 2, "input": "brake3"},
+        # actuator maps: a saturating torque constant, a gain that depends on the speed
+        {"kind": "library", "member": [1, 0], "k": -0.01, "input": "drive_motor",
+         "input_power": "abs_sq"},
+        {"kind": "library", "member": [1, 0], "k": 3e-4, "input": "brake2",
+         "input_power": "cube"},
+        {"kind": "library", "member": [0, 1], "k": -5e-3, "speed": "lin",
+         "input": "drive_motor"},
+        {"kind": "library", "member": [1, 0], "k": 7e-3, "speed": "abs", "input": "brake1"},
     ])
     th_c3, th_mesh, w_m = 2.3, 0.7 - 2.3, 0.5 * 30.0 - 4.0
     grav = 1.5 * math.cos(th_c3 / 20) - 0.4 * math.sin(th_c3 / 20)
@@ -110,12 +122,14 @@ def test_point_torques_match_the_hand_computed_laws() -> None:
     lib1 = 0.25 * math.tanh(w_m / 0.1) * math.sin(3 * (0.5 * 0.7 + 2.3)) * 2.0
     lib2 = 1e-5 * 30.0 * 30.0
     lib3 = 2e-3 * (-4.0) ** 3 * math.cos(2 * 2.3) * 0.3
+    maps = (np.array([1.0, 0.0]) * (-0.01 * 2.0 * 2.0 + 3e-4 * 0.2 ** 3 + 7e-3 * 30.0 * 0.1)
+            + np.array([0.0, 1.0]) * (-5e-3 * -4.0 * 2.0))
     expected = (np.array([0.0, 1.0]) * grav + np.array([1.0, 0.0]) * ripple
                 + np.array([0.5, 1.0]) * lib1 + np.array([1.0, 0.0]) * lib2
-                + np.array([0.0, 1.0]) * lib3)
+                + np.array([0.0, 1.0]) * lib3 + maps)
     np.testing.assert_allclose(terms.angle_force(theta, omega, 0.0, u), expected, rtol=1e-13)
     # without inputs the input products vanish
-    no_u = expected - np.array([0.5, 1.0]) * lib1 - np.array([0.0, 1.0]) * lib3
+    no_u = expected - np.array([0.5, 1.0]) * lib1 - np.array([0.0, 1.0]) * lib3 - maps
     np.testing.assert_allclose(terms.angle_force(theta, omega), no_u, rtol=1e-13)
     assert terms.extra_force(omega, 0.0).tolist() == [0.0, 0.0]
 

@@ -6,15 +6,15 @@ import pytest
 
 from dvt_model import bench
 from dvt_model.contract import SPEED_NAMES
-from dvt_model.recording.cdr import joint_state_cdr, parse_joint_state
+from dvt_model.recording.cdr import joint_state_cdr, parse_joint_state, restamp
 
 
 def test_restamp_changes_only_the_stamp() -> None:
     raw = joint_state_cdr(5, SPEED_NAMES, velocity=(100.0, 20.0))
-    out = parse_joint_state(bench._restamp(raw, 1_700_000_000_123_456_789))
+    out = parse_joint_state(restamp(raw, 1_700_000_000_123_456_789))
     assert out.stamp_ns == 1_700_000_000_123_456_789
     assert out.names == SPEED_NAMES and out.velocity == (100.0, 20.0)
-    assert bench._restamp(raw, 5) == raw
+    assert restamp(raw, 5) == raw
 
 
 def test_in_process_profile_reports_every_stage_with_the_detector_testing() -> None:

@@ -10,9 +10,9 @@ import pytest
 from dvt_model.contract import CURRENT_NAMES, CURRENTS, JOINT_STATE_TYPE, JOINT_STATES, SPEED_NAMES
 from dvt_model.errors import RecordingError
 from dvt_model.recording import joint_state_cdr, read_run, read_topics
+from dvt_model.recording.cdr import raw_stamp_ns, restamp
 from dvt_model.recording.ring import (
     RollingRecorder,
-    header_stamp_ns,
     segment_paths,
     write_snapshot,
 )
@@ -135,8 +135,16 @@ def test_killed_segments_are_adopted_and_read(tmp_path: Path) -> None:
 
 def test_header_stamp_parsing() -> None:
     raw = joint_state_cdr(T0 + 123, SPEED_NAMES, velocity=[0.0, 0.0])
-    assert header_stamp_ns(raw) == T0 + 123
-    assert header_stamp_ns(b"\x00\x01") is None
+    assert raw_stamp_ns(raw) == T0 + 123
+    sec, nsec = divmod(T0 + 7, 10**9)
+    big_endian = b"\x00\x00\x00\x00" + sec.to_bytes(4, "big") + nsec.to_bytes(4, "big")
+    assert raw_stamp_ns(big_endian) == T0 + 7
+    with pytest.raises(ValueError, match="2 bytes is too short"):
+        raw_stamp_ns(b"\x00\x01")
+    with pytest.raises(ValueError, match="unknown CDR encapsulation 0x0007"):
+        raw_stamp_ns(b"\x00\x07\x00\x00" + bytes(8))
+    moved = restamp(raw, T0 + 5_000_000_123)
+    assert raw_stamp_ns(moved) == T0 + 5_000_000_123 and moved[12:] == raw[12:]
 
 
 def test_float_second_windows_keep_edge_samples() -> None:

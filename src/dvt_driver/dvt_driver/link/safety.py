@@ -43,6 +43,13 @@ from enum import IntEnum
 from typing import Any
 
 from dvt_driver.errors import CommandRefusedError, SafetyConfigError
+from dvt_driver.hardware import (
+    HARDWARE_MAX_BRAKE_CURRENT,
+    HARDWARE_MAX_MOTOR_CURRENT,
+    HARDWARE_MAX_SUN_SPEED,
+    MOTOR_CONSTANT,
+    MOTOR_PEAK_TORQUE,
+)
 from dvt_model.contract import BRAKE_NAMES  # brake<g> selects gear g
 
 __all__ = [
@@ -66,18 +73,6 @@ __all__ = [
     "plan_shift",
 ]
 
-MOTOR_CONSTANT = 0.3732
-"""Drive-motor torque constant K_M [N m/A]."""
-MOTOR_PEAK_TORQUE = 12.0
-"""Drive-motor peak torque [N m]."""
-HARDWARE_MAX_MOTOR_CURRENT = MOTOR_PEAK_TORQUE / MOTOR_CONSTANT
-"""Largest drive-motor current the driver ever allows [A] (peak torque / K_M = 32.15 A)."""
-HARDWARE_MAX_SUN_SPEED = 2400.0 * 2.0 * math.pi / 60.0
-"""The thesis's safe maximum sun-shaft speed, 2400 rpm [rad/s] (251.33 rad/s)."""
-HARDWARE_MAX_BRAKE_CURRENT = 6.0
-"""Largest band-brake coil current the driver ever allows [A] (either sign); the controller's
-own clamp (6 A = 48 N m static band torque, enough to hold the peak motor torque in every
-gear)."""
 DEFAULT_MAX_BRAKE_CURRENT = HARDWARE_MAX_BRAKE_CURRENT
 """Default band-brake current limit [A] (0.5 A engages a band at about 4 N m)."""
 

@@ -1,6 +1,9 @@
 """The simulated plant: a controller + transmission that speaks the wire protocol.
 
-* :mod:`~dvt_driver.plant.core` - the simulated controller and physics (pure, stepped);
+* :mod:`~dvt_driver.plant.core` - the simulated controller's firmware, :class:`PlantSim` (pure,
+  stepped), with its settings in :mod:`~dvt_driver.plant.settings`;
+* :mod:`~dvt_driver.plant.physics` - the transmission it drives: the physics and the hidden
+  effects' forces (pure);
 * :mod:`~dvt_driver.plant.hidden` - the hidden effects the identifier must find (presets in
   ``config/``);
 * :mod:`~dvt_driver.plant.server` - ``dvt-plant``: the core on a pseudo-terminal in real time;

@@ -14,10 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from dvt_driver.link.protocol import Ack, Command, Hello, HelloAck, Mode, unwrap_count
@@ -33,7 +31,7 @@ from dvt_driver.run.experiment_core import (
 )
 from dvt_model.load import JointLoad
 from dvt_model.params import TransmissionParams
-from dvt_model.recording import write_run
+from dvt_model.recording import parse_truth, write_run
 
 Array = NDArray[np.float64]
 
@@ -140,7 +138,7 @@ def record_offline(path: str | Path, experiment: Experiment, params: Transmissio
     ``/dvt/joint_states`` messages carry the encoder positions (protocol version 2)."""
     run = run_offline(experiment, params, hidden, seed, load=load)
     stamps = start_ns + np.round(run.t * 1e9).astype(np.int64)
-    truth: dict[str, Any] = yaml.safe_load(run.truth) or {}
+    truth = parse_truth(run.truth, "the plant's truth")
     truth["made_by"] = f"dvt_driver.plant.offline.record_offline (experiment {experiment.name})"
     return write_run(path, stamps, run.speeds, run.currents, truth=truth,
                      positions=run.positions)

@@ -87,6 +87,21 @@ class SegmentView:
     angles: Array | None = None
 
 
+def speed_scale(seg: SegmentView, member: Array) -> float:
+    """The spread (std) of a member's speed ``c . x`` over a segment [speed unit]: from the
+    measured outputs when they are the states (``y @ c``); when the structure has hidden states
+    (fewer outputs than states) the largest spread of the outputs' time derivatives, the speed
+    of a measured position (a rough scale, what a shape variant needs). 1 when it is 0."""
+    y = np.asarray(seg.y, dtype=float)
+    if y.ndim == 2 and y.shape[1] == member.shape[0]:
+        s = float(np.std(y @ member))
+    elif y.ndim == 2 and y.shape[0] >= 3:
+        s = float(np.max(np.std(np.gradient(y, seg.dt, axis=0), axis=0)))
+    else:
+        s = 0.0
+    return s if s > 0 and np.isfinite(s) else 1.0
+
+
 @dataclass(frozen=True)
 class ScoringContext:
     """What an effect may use for extra scoring evidence (:meth:`Effect.scoring_evidence`).
@@ -304,9 +319,9 @@ class Effect:
         """Member force known before simulation, shape (N,), or ``None``."""
         return None
 
-    def smooth_law(self, p: Array) -> tuple[int, float, float] | None:
-        """A coded smooth member force ``(kind, p0, p1)`` (:mod:`dvt_identify.simloop`; the
-        simulation compiles these), or ``None``."""
+    def smooth_law(self, p: Array) -> tuple[int, float, float, float] | None:
+        """A coded smooth member force ``(kind, p0, p1, p2)`` (:mod:`dvt_identify.simloop`;
+        the simulation compiles these), or ``None``."""
         return None
 
     def dry_capacity(self, p: Array, seg: SegmentView) -> Array | float | None:

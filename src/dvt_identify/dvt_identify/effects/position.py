@@ -11,10 +11,11 @@ With an integrated angle a phase is relative to the first sample.
   ``hypot(a, b)`` and phase ``atan2(-b, a)`` (``A cos(theta / N + phase)``). ``N`` is a
   description option (``reduction``, held fixed) or scanned (``reductions``) and then fitted.
 - :class:`Unlisted` (``unlisted``): a sum of library terms ``sum_j k_j phi_j`` on one member,
-  each ``phi_j = S(s) T(k theta) u_i`` (speed factor ``sign(s)``, ``|s| s``, ``s^3`` or 1, angle
-  factor ``cos``/``sin`` of an order or 1, an input or 1). Built from a description entry it holds
-  the whole library (the search :mod:`dvt_identify.unlisted` picks a few terms with
-  :meth:`Unlisted.subset`); its label carries the formula in physical units.
+  each ``phi_j = S(s) T(k theta) P(u_i)`` (speed factor ``sign(s)``, ``|s| s``, ``s^3``, ``s``,
+  ``|s|`` or 1, angle factor ``cos``/``sin`` of an order or 1, input factor ``u_i``, ``|u_i|
+  u_i``, ``u_i^3`` or 1). Built from a description entry it holds the whole library (the search
+  :mod:`dvt_identify.unlisted` picks a few terms with :meth:`Unlisted.subset`); its label
+  carries the formula in physical units.
 
 All are exogenous forces evaluated on the measured speeds and angles (like a periodic
 disturbance), so the simulation stays the compiled linear + dry-friction loop. Model node:
@@ -42,6 +43,7 @@ from dvt_identify.effects.base import (
     numbers_option,
 )
 from dvt_identify.errors import DescriptionError
+from dvt_model.contract import LIBRARY_INPUT_POWERS, LIBRARY_SPEED_FACTORS
 
 ANGLE_FROM_POSITION = "measured position"
 ANGLE_FROM_SPEED = "integrated measured speed (from 0 at the first sample)"
@@ -163,13 +165,31 @@ class GravityLoad(Effect):
 
 # -- the generic term library --------------------------------------------------------------
 
-SPEED_FACTORS = ("", "sign", "abs_sq", "cube")
-"""Speed factors of a library term: none, ``sign(s)``, ``|s| s``, ``s^3``."""
+SPEED_FACTORS = LIBRARY_SPEED_FACTORS
+"""Speed factors of a library term: none, ``sign(s)``, ``|s| s``, ``s^3``, ``s`` (``lin``),
+``|s|`` (``abs``) (the model node's, :data:`dvt_model.contract.LIBRARY_SPEED_FACTORS`)."""
+INPUT_POWERS = LIBRARY_INPUT_POWERS
+"""Input factors of a library term with an input: ``u``, ``|u| u`` (``abs_sq``), ``u^3``
+(``cube``) (the model node's, :data:`dvt_model.contract.LIBRARY_INPUT_POWERS`)."""
+_SPEED_KEY = {"": "", "sign": "sgn", "abs_sq": "absq", "cube": "cube", "lin": "w", "abs": "absw"}
+_SPEED_UNIT_POWER = {"": 0, "sign": 0, "abs_sq": 2, "cube": 3, "lin": 1, "abs": 1}
+_INPUT_UNIT_POWER = {"": 1, "abs_sq": 2, "cube": 3}
+
+
+def _unit_power(unit: str, n: int, bracket: bool) -> str:
+    """``unit`` to the power ``n`` in a denominator (``A``, ``A^2``, ``(rad/s)``,
+    ``(rad/s)^2``); ``bracket``: always in brackets (else only a compound unit, and only
+    when raised to a power)."""
+    if n == 0:
+        return ""
+    if bracket or (n > 1 and not unit.isalnum()):
+        unit = f"({unit})"
+    return unit if n == 1 else f"{unit}^{n}"
 
 
 @dataclass(frozen=True)
 class LibTerm:
-    """One library term ``S(s) T(k theta) u_i`` on a member.
+    """One library term ``S(s) T(k theta) P(u_i)`` on a member.
 
     Attributes:
         speed: one of :data:`SPEED_FACTORS`.
@@ -178,6 +198,8 @@ class LibTerm:
         input: the input index of the product, or -1.
         mesh: 0: ``theta`` is the member's angle; ``k``: stage ``k``'s mesh angle ``theta_sun -
             theta_carrier_k`` (:class:`MeshStage`, ``order`` its sun teeth).
+        power: the input factor ``P(u)``, one of :data:`INPUT_POWERS` (``""``: ``u``; ignored
+            without an input).
     """
 
     speed: str = ""
@@ -185,16 +207,20 @@ class LibTerm:
     order: float = 0.0
     input: int = -1
     mesh: int = 0
+    power: str = ""
 
     def key(self, input_names: Sequence[str]) -> str:
-        """A short parameter-name stem (``sgn_cos1``, ``u_motor_sgn``, ...)."""
-        parts = {"sign": ["sgn"], "abs_sq": ["absq"], "cube": ["cube"], "": []}[self.speed]
+        """A short parameter-name stem (``sgn_cos1``, ``sgn_u_motor``, ``u_motor_absq``,
+        ``w_u_motor``, ...)."""
+        parts = [_SPEED_KEY[self.speed]] if self.speed else []
         if self.trig:
             parts.append(f"{self.trig}{self.order:g}".replace(".", "p"))
             if self.mesh:
                 parts.append(f"mesh{self.mesh}")
         if self.input >= 0:
             parts.append(f"u_{input_names[self.input]}")
+            if self.power:
+                parts.append(_SPEED_KEY[self.power])
         return "_".join(parts) or "const"
 
     def evaluate(self, s: Array, theta: Array, u: Array) -> Array:
@@ -206,39 +232,51 @@ class LibTerm:
             out = np.abs(s) * s
         elif self.speed == "cube":
             out = s ** 3
+        elif self.speed == "lin":
+            out = s.copy()
+        elif self.speed == "abs":
+            out = np.abs(s)
         if self.trig:
             c, sn = cell_mean_trig(theta, self.order)
             out = out * (c if self.trig == "cos" else sn)
         if self.input >= 0:
-            out = out * u[:, self.input]
+            x = u[:, self.input]
+            out = out * (np.abs(x) * x if self.power == "abs_sq"
+                         else x ** 3 if self.power == "cube" else x)
         return np.asarray(out, dtype=float)
 
     def text(self, member: str, input_names: Sequence[str]) -> str:
-        """The factor product in symbols (``sign(w_carrier3)*cos(1*th_carrier3)``)."""
-        f = {"sign": [f"sign(w_{member})"], "abs_sq": [f"|w_{member}|*w_{member}"],
-             "cube": [f"w_{member}^3"], "": []}[self.speed]
+        """The factor product in symbols (``sign(w_carrier3)*cos(1*th_carrier3)``,
+        ``i_motor*|i_motor|``, ``|w_sun_shaft|*i_motor``)."""
+        w = f"w_{member}"
+        f = {"sign": [f"sign({w})"], "abs_sq": [f"|{w}|*{w}"], "cube": [f"{w}^3"],
+             "lin": [w], "abs": [f"|{w}|"], "": []}[self.speed]
         if self.trig:
             angle = f"mesh{self.mesh}" if self.mesh else member
             f.append(f"{self.trig}({self.order:g}*th_{angle})")
         if self.input >= 0:
-            f.append(f"i_{input_names[self.input]}")
+            i = f"i_{input_names[self.input]}"
+            f.append({"abs_sq": f"{i}*|{i}|", "cube": f"{i}^3"}.get(self.power, i))
         return "*".join(f) or "1"
 
     def unit(self, force_unit: str, speed_unit: str, input_unit: str) -> str:
-        """The coefficient's unit: force over the term's unit."""
-        den = {"sign": [], "abs_sq": [f"({speed_unit})^2"], "cube": [f"({speed_unit})^3"],
-               "": []}[self.speed]
+        """The coefficient's unit: force over the term's unit (``N m/(rad/s)^2``, ``N m/A^2``,
+        ``N m/(rad/s)/A``)."""
+        den = [_unit_power(speed_unit, _SPEED_UNIT_POWER[self.speed], True)]
         if self.input >= 0:
-            den.append(input_unit)
+            den.append(_unit_power(input_unit, _INPUT_UNIT_POWER[self.power], False))
+        den = [d for d in den if d]
         return force_unit + ("/" + "/".join(den) if den else "")
 
 
 def default_library(orders: Sequence[float], inputs: Sequence[int],
                     mesh: Sequence[tuple[int, float]] = ()) -> tuple[LibTerm, ...]:
     """The generic library on one member: ``sign(s)``, ``|s| s``, ``s^3``; ``cos/sin(k theta)``
-    and ``sign(s) cos/sin(k theta)`` for each order; ``u_i sign(s)``, ``u_i cos/sin(k theta)``
-    for each listed input (products with the inputs). Each ``(stage, teeth)`` of ``mesh`` adds
-    the same angle terms on that stage's mesh angle at order ``teeth``."""
+    and ``sign(s) cos/sin(k theta)`` for each order; and for each listed input ``u_i`` the
+    actuator-map terms: ``u_i sign(s)``, ``u_i s``, ``u_i |s|`` (a gain that depends on the
+    speed), ``|u_i| u_i``, ``u_i^3`` (a torque constant that saturates or stiffens) and ``u_i
+    cos/sin(k theta)`` (a gain that depends on the angle). Each ``(stage, teeth)`` of ``mesh``
+    adds the same angle terms on that stage's mesh angle at order ``teeth``."""
     angles = [(float(k), 0) for k in orders] + [(float(z), int(st)) for st, z in mesh]
     out = [LibTerm("sign"), LibTerm("abs_sq"), LibTerm("cube")]
     for k, m in angles:
@@ -250,6 +288,8 @@ def default_library(orders: Sequence[float], inputs: Sequence[int],
         for k, m in angles:
             for trig in ("cos", "sin"):
                 out.append(LibTerm("", trig, k, i, mesh=m))
+        out += [LibTerm("lin", input=i), LibTerm("abs", input=i),
+                LibTerm(input=i, power="abs_sq"), LibTerm(input=i, power="cube")]
     return tuple(out)
 
 
@@ -351,8 +391,9 @@ class Unlisted(Effect):
     ``params``, default ``physical``), ``mesh_stages`` (true: add the angle terms of each
     stage's mesh angle ``theta_sun - theta_carrier_k`` at its sun teeth, ``th_mesh<k>`` in the
     formula; ``mesh_speeds`` names the states of the sun and carrier-3 speeds, see
-    :func:`mesh_members`), ``inputs`` (input names for the products, default the first
-    input), ``max_terms`` (the search's cap, default 3).
+    :func:`mesh_members`), ``inputs`` (input names of the input-side terms: products with
+    the speed and angle factors and the input's powers, :func:`default_library`; default the
+    first input; ``[]``: none), ``max_terms`` (the search's cap, default 3).
 
     Attributes:
         mesh_forms: stage ``k``'s mesh-angle form over the states at index ``k - 1``
@@ -363,10 +404,11 @@ class Unlisted(Effect):
     no_term = "every coefficient is 0"
 
     def model_terms(self, p: Array, outputs: Sequence[str]) -> list[Term] | None:
-        """One ``library`` term per non-zero coefficient: ``k S(s) T(order theta) u`` on the
+        """One ``library`` term per non-zero coefficient: ``k S(s) T(order theta) P(u)`` on the
         member, ``theta`` the member's angle or the term's mesh angle (field ``angle``), the
-        input named by the model's input name (the push maps it to the node's current);
-        ``None`` when every coefficient is 0."""
+        input named by the model's input name (the push maps it to the node's current) and
+        its power (field ``input_power``, only when not ``u``); ``None`` when every
+        coefficient is 0."""
         out: list[Term] = []
         for t, k in zip(self.terms, p, strict=True):
             if float(k) == 0.0:
@@ -377,6 +419,8 @@ class Unlisted(Effect):
                           "input": self.input_names[t.input] if t.input >= 0 else ""}
             if t.trig and t.mesh:
                 term["angle"] = [float(v) for v in self.mesh_form(t.mesh)]
+            if t.input >= 0 and t.power:
+                term["input_power"] = t.power
             out.append(term)
         return out or None
     terms: tuple[LibTerm, ...] = ()

@@ -2,9 +2,12 @@
 
 :func:`joint_state_cdr` encodes little-endian CDR directly (as ROS 2 publishes it);
 :func:`parse_joint_state` decodes one message (fast path for little endian, ``rosbags`` for
-anything else); :func:`cdr_layout` finds where the stamp, names and float arrays lie in a
-message, which the bulk decoder of :mod:`~dvt_model.recording.read` uses to slice many messages
-at once. :func:`typestore` is the type store every reader and writer of the suite shares.
+anything else); :func:`raw_stamp_ns` reads the ``header.stamp`` of any serialised message that
+starts with a ``std_msgs/Header`` without decoding it (the one stamp decoder of raw CDR) and
+:func:`restamp` rewrites it; :func:`cdr_layout` finds where the stamp, names and float arrays
+lie in a message, which the bulk decoder of :mod:`~dvt_model.recording.read` uses to slice
+many messages at once. :func:`typestore` is the type store every reader and writer of the
+suite shares.
 """
 
 from __future__ import annotations
@@ -107,6 +110,37 @@ _PACK_STAMP = struct.Struct("<iI").pack
 _PACK_U32 = struct.Struct("<I").pack
 UNPACK_U32 = struct.Struct("<I").unpack_from
 _UNPACK_STAMP = struct.Struct("<iI").unpack_from
+_UNPACK_STAMP_BE = struct.Struct(">iI").unpack_from
+
+
+def raw_stamp_ns(raw: bytes | memoryview) -> int:
+    """``header.stamp`` [ns] of a serialised message whose first field is a ``std_msgs/Header``,
+    read from bytes 4..12 without decoding the message (4-byte encapsulation header, then
+    ``int32 sec``, ``uint32 nanosec`` in the encapsulation's byte order).
+
+    Raises:
+        ValueError: fewer than 12 bytes, or an encapsulation other than CDR / PL_CDR (big or
+            little endian: ``00 00`` .. ``00 03``); the message names both.
+    """
+    if len(raw) < 12:
+        raise ValueError(f"serialized message of {len(raw)} bytes is too short for a header")
+    kind = raw[1]
+    if raw[0] != 0 or kind > 3:
+        raise ValueError(f"unknown CDR encapsulation 0x{raw[0]:02x}{kind:02x}")
+    sec, nanosec = (_UNPACK_STAMP if kind & 1 else _UNPACK_STAMP_BE)(raw, 4)
+    return int(sec) * 1_000_000_000 + int(nanosec)
+
+
+def restamp(raw: bytes, stamp_ns: int) -> bytes:
+    """``raw`` (little-endian CDR of a message that starts with a ``std_msgs/Header``) with
+    ``header.stamp = stamp_ns`` [ns].
+
+    Raises:
+        ValueError: ``raw`` is not little-endian CDR or too short for a header.
+    """
+    if len(raw) < 12 or raw[:2] != CDR_LE[:2]:
+        raise ValueError("restamp: expected little-endian CDR of at least 12 bytes")
+    return raw[:4] + _PACK_STAMP(*_split_stamp(stamp_ns)) + raw[12:]
 
 
 class JointStateFields(NamedTuple):
@@ -168,10 +202,9 @@ def parse_joint_state(raw: bytes | memoryview) -> JointStateFields:
     buf = bytes(raw)
     try:
         lay = cdr_layout(buf)
-        sec, nanosec = _UNPACK_STAMP(buf, 4)
         pos, vel, eff = (struct.unpack_from(f"<{c}d", buf, o) if c else ()
                          for o, c in lay.arrays)
-        return JointStateFields(sec * 1_000_000_000 + nanosec, lay.names, pos, vel, eff)
+        return JointStateFields(raw_stamp_ns(buf), lay.names, pos, vel, eff)
     except (ValueError, struct.error, UnicodeDecodeError):
         msg: Any = typestore().deserialize_cdr(buf, JOINT_STATE_TYPE)
         return JointStateFields(header_stamp_ns(msg), tuple(msg.name),

@@ -2,8 +2,9 @@
 
 A recording is a rosbag2 directory: ``metadata.yaml`` (rosbag2 version 9) next to one ``.mcap``
 file (profile ``ros2``, schema encoding ``ros2msg``, message encoding ``cdr``, ROS 2 Jazzy
-types), optionally with a ``truth.yaml`` sidecar (simulation only). Topic names and joint names
-are the contract's (:mod:`dvt_model.contract`).
+types), optionally with a ``truth.yaml`` sidecar (simulation only) and a ``run.yaml`` sidecar
+(how ``dvt-launch`` made the run); :mod:`~dvt_model.recording.sidecar` reads and writes the three
+YAML files. Topic names and joint names are the contract's (:mod:`dvt_model.contract`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ LIBRARY = "dvt-recorder"
 METADATA_FILE = "metadata.yaml"
 TRUTH_FILE = "truth.yaml"
 """Sidecar with the simulated plant's hidden truth (see :func:`~.write.write_run`)."""
+RUN_FILE = "run.yaml"
+"""Sidecar saying how ``dvt-launch`` made the run (command, settings, the bag check)."""
 RECOVER_HINT = "dvt-bag recover"
 """The command that rebuilds a killed recording (named in errors)."""
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -23,16 +23,16 @@ from pathlib import Path
 from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
-import yaml
 from mcap.exceptions import EndOfFile
 from mcap.records import Channel, Footer, Header, Message, Schema
 from mcap.stream_reader import StreamReader
 from numpy.typing import NDArray
 from rosbags.rosbag2 import ReaderError
 
-from dvt_model.errors import RecordingError
+from dvt_model.errors import BagError, RecordingError
 from dvt_model.recording.cdr import UNPACK_U32
-from dvt_model.recording.layout import MCAP_MAGIC, METADATA_FILE
+from dvt_model.recording.layout import MCAP_MAGIC
+from dvt_model.recording.sidecar import read_metadata
 
 Int1D = NDArray[np.int64]
 
@@ -222,12 +222,12 @@ def mcap_collect(files: Sequence[Path], topics: Sequence[str]) -> dict[str, RawM
 def mcap_files(path: Path) -> list[Path] | None:
     """The MCAP files of a bag directory (``None``: other storage, or compressed files)."""
     try:
-        meta = yaml.safe_load((path / METADATA_FILE).read_text())["rosbag2_bagfile_information"]
+        meta = read_metadata(path)
         if meta.get("storage_identifier") != "mcap" or \
                 str(meta.get("compression_mode") or "").lower() not in ("", "none"):
             return None
         return [path / Path(str(x)).name for x in meta["relative_file_paths"]]
-    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+    except (BagError, KeyError, TypeError):
         return None
 
 

@@ -32,10 +32,8 @@ import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
 
 import numpy as np
-import yaml
 from mcap.records import Channel
 from numpy.typing import NDArray
 from rosbags.rosbag2 import Reader, ReaderError
@@ -54,7 +52,6 @@ from dvt_model.recording.layout import (
     MCAP_MAGIC,
     METADATA_FILE,
     RECOVER_HINT,
-    TRUTH_FILE,
     recover_hint,
 )
 from dvt_model.recording.mcapindex import RawMessages, message_at, raw_from_list, rows, view_as
@@ -62,21 +59,42 @@ from dvt_model.recording.pairing import pair_stamps
 
 Float2D = NDArray[np.float64]
 Int1D = NDArray[np.int64]
+FIELDS: tuple[str, ...] = ("position", "velocity", "effort")
+"""The float-array fields of a JointState, in message order."""
 
 
-class TopicSeries(NamedTuple):
-    """All messages of one JointState topic, in recorded order.
+@dataclass(frozen=True)
+class TopicSeries:
+    """All messages of one ``sensor_msgs/msg/JointState`` topic, in recorded order: the one
+    series type of the suite (read by :func:`read_topics`, written by
+    :func:`~dvt_model.recording.write.write_topics`).
 
     ``stamps_ns`` (N,) int64 header stamps [ns]; ``names`` joint names (identical in every
-    message); ``velocity`` (N, k), ``effort`` (N, m) and ``position`` (N, p) with k, m, p in
-    {0, len(names)}.
+    message); ``position``, ``velocity`` and ``effort`` each (N, len(names)) [rad, rad/s, A or
+    N m], or ``None`` when the messages carry none (an empty array in the message).
     """
 
     stamps_ns: Int1D
     names: tuple[str, ...]
-    velocity: Float2D
-    effort: Float2D
-    position: Float2D
+    position: Float2D | None = None
+    velocity: Float2D | None = None
+    effort: Float2D | None = None
+
+    @property
+    def n(self) -> int:
+        """Number of messages N."""
+        return int(self.stamps_ns.shape[0])
+
+    def field_array(self, name: str) -> Float2D | None:
+        """The array of field ``name`` (one of :data:`FIELDS`), ``None`` when empty.
+
+        Raises:
+            KeyError: ``name`` is not a JointState float field.
+        """
+        if name not in FIELDS:
+            raise KeyError(f"{name!r}: not a JointState field (expected one of {list(FIELDS)})")
+        value: Float2D | None = getattr(self, name)
+        return value
 
 
 @dataclass(frozen=True)
@@ -110,20 +128,6 @@ class Run:
     def duration(self) -> float:
         """Last minus first stamp [s]."""
         return float(self.t[-1]) if self.n else 0.0
-
-
-def read_truth(path: str | Path) -> dict[str, Any] | None:
-    """The sidecar ``truth.yaml`` of a simulated recording, or ``None`` if there is none."""
-    f = Path(path) / TRUTH_FILE
-    if not f.exists():
-        return None
-    try:
-        data = yaml.safe_load(f.read_text())
-    except yaml.YAMLError as exc:
-        raise BagError(f"{f}: invalid YAML: {exc}") from exc
-    if not isinstance(data, dict):
-        raise BagError(f"{f}: expected a mapping at top level, got {type(data).__name__}")
-    return data
 
 
 def open_reader(path: Path) -> Reader:
@@ -355,7 +359,7 @@ def _decode(path: Path, topic: str, raw: RawMessages) -> TopicSeries:
             i = int(bad[0])
             raise BagError(f"{path}: topic {topic}: field '{fname}' of message {i} has "
                            f"{int(lengths[fname][i])} values, message 0 has {k}")
-    return TopicSeries(stamps, names, values["velocity"], values["effort"], values["position"])
+    return TopicSeries(stamps, names, **{f: values[f] if width[f] else None for f in FIELDS})
 
 
 def read_topics(path: str | Path, topics: Sequence[str], *, salvage: bool = True
@@ -380,9 +384,8 @@ def read_topics(path: str | Path, topics: Sequence[str], *, salvage: bool = True
 def read_topic_series(path: str | Path, topic: str, *, salvage: bool = True) -> TopicSeries:
     """Read every message of a ``sensor_msgs/msg/JointState`` topic, in recorded order.
 
-    Returns ``(stamps_ns, names, velocity, effort, position)`` (see :class:`TopicSeries`). No
-    value checks beyond consistent names and array lengths; ``salvage`` as
-    :func:`read_topics`.
+    Returns a :class:`TopicSeries`. No value checks beyond consistent names and array
+    lengths; ``salvage`` as :func:`read_topics`.
     """
     return read_topics(path, [topic], salvage=salvage)[topic]
 
@@ -393,8 +396,8 @@ def _validate(path: Path, topic: str, series: TopicSeries, expected: tuple[str, 
     if series.names != expected:
         raise BagError(f"{path}: topic {topic}: field 'name' is {list(series.names)}, "
                        f"expected {list(expected)}")
-    values = series.velocity if fname == "velocity" else series.effort
-    if values.shape[1] != len(expected):
+    values = series.field_array(fname)
+    if values is None:
         raise BagError(f"{path}: topic {topic}: field '{fname}' is empty, expected "
                        f"{len(expected)} values per message")
     finite = np.isfinite(values)
@@ -434,7 +437,7 @@ def read_run(path: str | Path, *, salvage: bool = False) -> Run:
     ia, ib = pairing.index[JOINT_STATES], pairing.index[CURRENTS]
     stamps = js.stamps_ns[ia].astype(np.int64)
     t = (stamps - stamps[0]).astype(np.float64) * 1e-9
-    pos = js.position[ia] if js.position.shape[1] == len(SPEED_NAMES) else None
+    pos = js.position[ia] if js.position is not None else None
     return Run(path=path, stamps_ns=stamps, t=t, speeds=speeds[ia], currents=currents[ib],
                topics=topics, unmatched=sum(pairing.unmatched.values()),
                unmatched_by_topic=dict(pairing.unmatched),

@@ -28,10 +28,10 @@ they age out).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import shutil
-import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,6 +41,7 @@ from typing import Any
 from mcap.records import Channel, Schema
 
 from dvt_model.errors import RecordingError
+from dvt_model.recording.cdr import raw_stamp_ns
 from dvt_model.recording.mcapindex import McapScan
 from dvt_model.recording.recover import _add_channel
 from dvt_model.recording.write import DEFAULT_FLUSH_PERIOD, BagRecorder, fsync_dir
@@ -48,8 +49,6 @@ from dvt_model.recording.write import DEFAULT_FLUSH_PERIOD, BagRecorder, fsync_d
 SEGMENT_PREFIX = "seg-"
 """Name prefix of a segment directory: ``seg-<start log time, ns, 20 digits>``."""
 _HEADER_TYPES = ("std_msgs/Header", "std_msgs/msg/Header", "Header")
-_STAMP_LE = struct.Struct("<iI")
-_STAMP_BE = struct.Struct(">iI")
 
 
 @dataclass
@@ -377,20 +376,6 @@ def has_header(schema: Schema | None) -> bool:
     return False
 
 
-def header_stamp_ns(raw: bytes) -> int | None:
-    """``header.stamp`` [ns] of a CDR message whose first field is a Header (``None`` if too
-    short or an unknown encapsulation)."""
-    if len(raw) < 12 or raw[0] != 0:
-        return None
-    if raw[1] in (1, 3):
-        sec, nsec = _STAMP_LE.unpack_from(raw, 4)
-    elif raw[1] in (0, 2):
-        sec, nsec = _STAMP_BE.unpack_from(raw, 4)
-    else:
-        return None
-    return sec * 1_000_000_000 + nsec
-
-
 def write_snapshot(plan: SnapshotPlan, out_dir: str | Path) -> SnapshotResult:
     """Copy the messages of ``plan``'s window from its (closed) segments into a new bag.
 
@@ -432,9 +417,10 @@ def _copy_window(src: Path, rec: BagRecorder, lo: int, hi: int, result: Snapshot
         topic = topic_of.get(r.channel_id)
         if topic is None:
             continue
-        t: int | None = header_stamp_ns(r.data) if stamped.get(r.channel_id) else None
-        if t is None:
-            t = r.log_time
+        t = r.log_time
+        if stamped.get(r.channel_id):
+            with contextlib.suppress(ValueError):  # not CDR: the log time stands in
+                t = raw_stamp_ns(r.data)
         if lo <= t <= hi:
             rec.write(topic, r.data, r.log_time)
             if result.first_ns is None or t < result.first_ns:

@@ -56,9 +56,9 @@ from dvt_model.recording.layout import (
     METADATA_FILE,
     ROS_DISTRO,
     ROSBAG2_VERSION,
-    TRUTH_FILE,
 )
-from dvt_model.recording.read import TopicSeries
+from dvt_model.recording.read import FIELDS, TopicSeries
+from dvt_model.recording.sidecar import write_truth
 
 DEFAULT_FLUSH_PERIOD = 0.5
 """Seconds after which a received message is durable on disk (:class:`BagRecorder`)."""
@@ -438,7 +438,7 @@ def write_run(path: str | Path, stamps_ns: ArrayLike, speeds: ArrayLike, current
     streams.extend(extra or ())
     out = write_bag(path, streams)
     if truth is not None:
-        (out / TRUTH_FILE).write_text(yaml.safe_dump(dict(truth), sort_keys=False))
+        write_truth(out, truth)
     return out
 
 
@@ -447,8 +447,8 @@ def write_topics(path: str | Path, topics: Mapping[str, TopicSeries]) -> Path:
 
     Each :class:`~dvt_model.recording.read.TopicSeries` gives per message the
     ``header.stamp`` [ns] (also the log time) and the ``position``, ``velocity`` and ``effort``
-    rows; a field of shape (N, 0) is written as an empty array, any other must be
-    (N, len(names)). Raises :class:`~dvt_model.errors.BagError` naming the path, topic and
+    rows; a field that is ``None`` (or of shape (N, 0)) is written as an empty array, any other
+    must be (N, len(names)). Raises :class:`~dvt_model.errors.BagError` naming the path, topic and
     field for a wrong shape, or if ``path`` exists.
     """
     path = Path(path)
@@ -457,8 +457,9 @@ def write_topics(path: str | Path, topics: Mapping[str, TopicSeries]) -> Path:
         stamps = _int_stamps(f"{path}: topic {topic}: stamps_ns", ser.stamps_ns)
         n = stamps.shape[0]
         arrays: dict[str, NDArray[np.float64] | None] = {}
-        for fname in ("position", "velocity", "effort"):
-            a = np.asarray(getattr(ser, fname), dtype=np.float64)
+        for fname in FIELDS:
+            value = ser.field_array(fname)
+            a = np.zeros((n, 0)) if value is None else np.asarray(value, dtype=np.float64)
             if a.shape == (n, 0):
                 arrays[fname] = None
                 continue

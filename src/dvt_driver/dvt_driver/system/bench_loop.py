@@ -1,7 +1,8 @@
 """``dvt-bench loop``: the self-closing loop on the simulated plant (``docs/loop.md``).
 
-Without ``--with-identifier``: the change-detection benchmark of :func:`dvt_driver.run.bench.
-loop_main` (plant -> driver -> model node with its detector; a change by SIGHUP).
+Without ``--with-identifier``: the change-detection benchmark of
+:func:`dvt_driver.system.bench_detect.loop_main` (plant -> driver -> model node with its
+detector; a change by SIGHUP).
 
 With ``--with-identifier``: the whole loop as ``dvt-launch sim --supervise`` runs it
 (:func:`episode_launch_args`): the ``watch`` experiment (continuous neutral PRBS + multisine),
@@ -45,8 +46,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from dvt_driver.errors import LaunchError
+from dvt_driver.run.processes import script
+from dvt_driver.system.launch_args import IDENTIFY_DIR
 from dvt_model.contract import (
     JOINT_STATES,
     MODEL_CHANGE,
@@ -54,8 +57,16 @@ from dvt_model.contract import (
     RESET_DETECTOR_LOG,
     SPEED_NAMES,
 )
-
-BIN = Path(sys.executable).parent
+from dvt_model.errors import DvtModelError
+from dvt_model.recording import (
+    BagMessages,
+    changes_applied,
+    decode,
+    raw_stamp_ns,
+    read_truth,
+)
+from dvt_model.recording.cdr import parse_joint_state
+from dvt_model.recording.ring import segment_paths
 
 LIVE_SUPERVISOR: dict[str, float | int] = {
     "min_post_change_s": 30.0, "settle_s": 1.0, "validation_s": 5.0, "watch_s": 15.0,
@@ -102,19 +113,24 @@ def episode_launch_args(logdir: Path, rate: float = 250.0, change_at: float = 50
 
 
 def true_change(logdir: Path) -> float | None:
-    """Host time [s] at which the plant applied its first change (``truth.yaml``), if any."""
-    path = logdir / "truth.yaml"
-    if not path.exists():
-        return None
-    doc = yaml.safe_load(path.read_text()) or {}
-    applied = doc.get("changes_applied") or []
+    """Host time [s] at which the plant applied its first change (``truth.yaml`` in
+    ``logdir``), if any."""
+    applied = changes_applied(read_truth(logdir))
     return float(applied[0]["unix_s"]) if applied else None
+
+
+def episode_reports(directory: Path) -> list[Path]:
+    """The episode reports the identifier writes (``episode-N.json``, also ``episode-N-K.json``
+    of a later node) under ``<directory>/episodes``, in episode order."""
+    def key(p: Path) -> tuple[int, ...]:
+        return tuple(int(x) for x in p.stem.split("-")[1:] if x.isdigit())
+
+    base = directory / "episodes"
+    return sorted(base.glob("episode-*.json"), key=key) if base.is_dir() else []
 
 
 def episodes(logdir: Path) -> list[dict[str, Any]]:
     """The episode reports the identifier wrote under ``<logdir>/identify/episodes``."""
-    from dvt_driver.run.launch import IDENTIFY_DIR, episode_reports
-
     out = []
     for p in episode_reports(logdir / IDENTIFY_DIR):
         with contextlib.suppress(OSError, ValueError):
@@ -143,7 +159,7 @@ def run_episode(logdir: Path, launch_args: Sequence[str], timeout: float,
     launcher's exit status (130 when stopped here)."""
     logdir.mkdir(parents=True, exist_ok=True)
     out = (logdir / "launch.log").open("wb")
-    proc = subprocess.Popen([str(BIN / "dvt-launch"), *launch_args], stdout=out,
+    proc = subprocess.Popen([script("dvt-launch"), *launch_args], stdout=out,
                             stderr=subprocess.STDOUT, env=env, start_new_session=True)
     deadline = time.monotonic() + timeout
     try:
@@ -193,12 +209,6 @@ def _read_ring(ring: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int
                                     list[dict[str, Any]]]:
     """Residual stamps [s] and values, its reception times by stamp, the samples' reception
     times by stamp [ns], and the alarms, from every ring segment."""
-    from rosbags.rosbag2 import Reader
-
-    from dvt_model.recording.cdr import parse_joint_state, typestore
-    from dvt_model.recording.ring import header_stamp_ns, segment_paths
-
-    ts = typestore()
     stamps: list[int] = []
     values: list[tuple[float, ...]] = []
     res_at: dict[int, int] = {}
@@ -206,26 +216,26 @@ def _read_ring(ring: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int
     alarms: list[dict[str, Any]] = []
     for seg in segment_paths(ring):
         try:
-            with Reader(seg) as reader:
-                conns = [c for c in reader.connections
-                         if c.topic in (JOINT_STATES, MODEL_RESIDUAL, MODEL_CHANGE)]
-                for conn, log_time, raw in reader.messages(connections=conns):
-                    if conn.topic == MODEL_CHANGE:
-                        msg: Any = ts.deserialize_cdr(raw, conn.msgtype)
+            with BagMessages(seg) as bag:
+                wanted = [t for t in (JOINT_STATES, MODEL_RESIDUAL, MODEL_CHANGE)
+                          if t in bag.types]
+                for msg in bag.messages(wanted):
+                    if msg.topic == MODEL_CHANGE:
                         with contextlib.suppress(ValueError, KeyError):
-                            alarms.append(json.loads(msg.data))
+                            alarms.append(json.loads(decode(msg).data))
                         continue
-                    stamp = header_stamp_ns(raw)
-                    if stamp is None:
+                    try:
+                        stamp = raw_stamp_ns(msg.data)
+                    except ValueError:
                         continue
-                    if conn.topic == JOINT_STATES:
-                        js_at[stamp] = int(log_time)
+                    if msg.topic == JOINT_STATES:
+                        js_at[stamp] = msg.log_time_ns
                     else:
-                        fields_ = parse_joint_state(raw)
+                        fields_ = parse_joint_state(msg.data)
                         vel = dict(zip(fields_.names, fields_.velocity, strict=False))
                         stamps.append(stamp)
                         values.append(tuple(float(vel.get(n, math.nan)) for n in SPEED_NAMES))
-                        res_at[stamp] = int(log_time)
+                        res_at[stamp] = msg.log_time_ns
         except Exception:  # a segment cut by a kill: the others still count
             continue
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
@@ -252,7 +262,7 @@ def _rearm_time(logdir: Path) -> float | None:
 
 def analyse_episode(logdir: Path, learn_s: float = 10.0) -> EpisodeRun:
     """Figures of a live episode run in ``logdir`` (see the module docstring)."""
-    from dvt_driver.run.bench import _chi2_upper
+    from dvt_driver.system.bench_detect import chi2_upper
 
     st, val, latency, dropped, alarms = _read_ring(logdir / "ring")
     change = true_change(logdir)
@@ -295,7 +305,7 @@ def analyse_episode(logdir: Path, learn_s: float = 10.0) -> EpisodeRun:
         f["clean_tested_s"] = round(clean_s, 1)
         hours = clean_s / 3600.0
         f["false_alarms_per_hour"] = round(f["false_alarms"] / hours, 1) if hours else None
-        f["false_alarms_per_hour_upper95"] = (round(_chi2_upper(f["false_alarms"]) / hours, 1)
+        f["false_alarms_per_hour_upper95"] = (round(chi2_upper(f["false_alarms"]) / hours, 1)
                                               if hours else None)
         post = (bins >= change + 1.0) & (bins < change + 15.0)
         f["residual_rms_changed"] = dict(zip(SPEED_NAMES, np.round(
@@ -365,7 +375,8 @@ def run_with_identifier(rate: float = 250.0, change_at: float = 50.0,
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``dvt-bench loop`` (argv without the ``loop`` word); returns the exit status."""
-    from dvt_driver.run.bench import loop_main, print_results
+    from dvt_driver.run.bench import print_results
+    from dvt_driver.system.bench_detect import loop_main
 
     args_in = list(sys.argv[1:] if argv is None else argv)
     if "--with-identifier" not in args_in:
@@ -394,7 +405,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         res = run_with_identifier(a.rate, a.change_at, a.change, a.learn_s, a.seed, a.timeout,
                                   Path(a.keep) if a.keep else None,
                                   log=None if a.json else sys.stderr)
-    except (OSError, RuntimeError) as exc:
+    except (OSError, RuntimeError, LaunchError, DvtModelError) as exc:
         print(f"dvt-bench loop: error: {exc}", file=sys.stderr)
         return 1
     print_results(res, a.json, 32)

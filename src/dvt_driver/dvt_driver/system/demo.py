@@ -1,5 +1,8 @@
 """The README's demo (``scripts/demo.sh OUTDIR``): the whole loop on the simulated plant.
 
+Part of the integration layer (:mod:`dvt_driver.system`): it runs the driver's plant and
+launcher and the identifier's node and plots with the identifier's style.
+
 1. **Model** (``model_replay.png``): a run simulated by the physics core is written as a bag,
    replayed with ``dvt-replay`` into the live ``dvt_model_node`` and its prediction plotted
    against the measurement.
@@ -38,9 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from dvt_driver.run.processes import script
 from dvt_identify import style
-
-BIN = Path(sys.executable).parent
 
 
 def _log(msg: str) -> None:
@@ -112,7 +114,7 @@ def _launch_record(out: Path, name: str, seed: int, hidden: str) -> Path:
     bag = out / name
     if bag.exists():
         shutil.rmtree(bag)
-    cmd = [str(BIN / "dvt-launch"), "sim", "--hidden", hidden, "--seed", str(seed),
+    cmd = [script("dvt-launch"), "sim", "--hidden", hidden, "--seed", str(seed),
            "--experiment", "ident", "--experiment-seed", str(seed), "--record", str(bag),
            "--model-param", "params:=thesis", "--max-missing", "5",
            "--log-dir", str(out / "logs" / name)]
@@ -141,11 +143,11 @@ class _Live:
         from dvt_model import contract, rosutil
 
         self.procs = [
-            subprocess.Popen([str(BIN / "dvt_model_node"), "--ros-args", "-p",
+            subprocess.Popen([script("dvt_model_node"), "--ros-args", "-p",
                               f"params:={params}"], start_new_session=True)]
         if identifier:
             self.procs.append(subprocess.Popen(
-                [str(BIN / "dvt_identify_node"), "--ros-args", "-p",
+                [script("dvt_identify_node"), "--ros-args", "-p",
                  f"output_dir:={out / 'identify'}"], start_new_session=True))
         self.ctx = Context()
         rclpy.init(context=self.ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0")))
@@ -179,7 +181,7 @@ class _Live:
 
     def replay(self, bag: Path) -> dict[int, list[float]]:
         self.pred.clear()
-        proc = subprocess.Popen([str(BIN / "dvt-replay"), str(bag), "--wait-subscribers", "1"])
+        proc = subprocess.Popen([script("dvt-replay"), str(bag), "--wait-subscribers", "1"])
         self.until(lambda: proc.poll() is not None, 300.0, "the replay")
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
@@ -299,7 +301,7 @@ def episode(out: Path) -> dict[str, Any]:
     Raises:
         RuntimeError: no episode of the injected change within :data:`EPISODE_TIMEOUT_S`.
     """
-    from dvt_driver.run.bench_loop import episode_launch_args, run_episode
+    from dvt_driver.system.bench_loop import episode_launch_args, run_episode
 
     logdir = out / "episode"
     if logdir.exists():
@@ -327,7 +329,7 @@ def episode(out: Path) -> dict[str, Any]:
 
 def plot_episode(logdir: Path, png: Path) -> dict[str, Any]:
     """Draw the episode run in ``logdir`` (``dvt-launch --supervise`` log directory) into
-    ``png``; returns the measured figures (:func:`dvt_driver.run.bench_loop.analyse_episode`).
+    ``png``; returns the measured figures (:func:`dvt_driver.system.bench_loop.analyse_episode`).
 
     Raises:
         RuntimeError: no episode report of the injected change in ``logdir``.
@@ -337,7 +339,7 @@ def plot_episode(logdir: Path, png: Path) -> dict[str, Any]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from dvt_driver.run.bench_loop import RESTORED_FACTOR, analyse_episode
+    from dvt_driver.system.bench_loop import RESTORED_FACTOR, analyse_episode
 
     run = analyse_episode(logdir)
     f = run.figures

@@ -1,0 +1,142 @@
+"""The linear reference beside every physical model, and the starts it gives.
+
+:func:`fit_reference` fits the black-box LTI reference (:class:`~dvt_identify.reference.
+LinearReference`: subspace start, output-error refinement, order chosen on the selection data)
+on the same estimation data as the physical model and simulates it on the same validation data
+with the same initial-state rule, so the report can put the two side by side
+(:class:`ReferenceStage`) and flag a physical model that scores worse. :func:`mapped_starts`
+turns the reference into starts of the physical fit (:mod:`dvt_identify.startmap`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dvt_identify.data import Segment
+from dvt_identify.errors import DataError, FitError
+from dvt_identify.metrics import Figures, figures
+from dvt_identify.reference import LinearReference
+from dvt_identify.simulation import OEModel, zoh_decimate
+from dvt_identify.startmap import MappedStart, frequency_response_starts
+
+Array = NDArray[np.float64]
+MAX_SAMPLES = 6000
+"""The reference is fitted on the estimation data decimated (consistently with the hold) to at
+most about this many samples per segment: it is a yardstick, fitted in seconds."""
+HOLDOUT = 0.3
+"""With cross-validated selection the reference's order is chosen on the last 30 % of each
+estimation segment (fitted on the rest)."""
+
+
+@dataclass
+class ReferenceStage:
+    """The linear reference scored like the physical model.
+
+    Attributes:
+        model: the fitted :class:`LinearReference`.
+        val: figures on the validation (selection) data, initial states by the same rule as
+            the physical model's.
+        val_pred: its simulated outputs per validation segment, (N, ny) each.
+        est: figures on the estimation data (at the fit rate).
+        chosen_on: what chose its order.
+        starts: the structure starts it gave the physical fit (:func:`mapped_starts`).
+    """
+
+    model: LinearReference
+    val: Figures
+    val_pred: list[Array]
+    est: Figures
+    chosen_on: str
+    starts: list[MappedStart] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready summary."""
+        m = self.model
+        return {"order": m.order_, "chosen_on": self.chosen_on, "sample_time_s": m.dt_,
+                "validation": self.val.as_dict(), "estimation": self.est.as_dict(),
+                "orders": [r.as_dict() for r in m.orders_], "seconds": m.seconds_,
+                "notes": list(m.notes_),
+                "poles_hz": [abs(complex(p)) / (2 * math.pi) for p in m.model_.poles_s()],
+                "mapped_starts": [{"mismatch": s.mismatch, "origin": s.origin,
+                                   "theta": s.theta.tolist()} for s in self.starts]}
+
+
+def _thin(segs: Sequence[Segment]) -> list[Segment]:
+    out = []
+    for s in segs:
+        q = max(1, math.ceil(s.n / MAX_SAMPLES))
+        out.append(zoh_decimate(s, q) if q > 1 and s.n // q >= 10 else s)
+    return out
+
+
+def fit_reference(fit_segs: Sequence[Segment], val: Sequence[Segment], init_window: int,
+                  max_order: int, seed: int, cross_validate: bool) -> ReferenceStage:
+    """Fit the reference on ``fit_segs`` (the physical fit's data), choose its order on ``val``
+    (with cross-validated selection: on the last :data:`HOLDOUT` of each estimation segment,
+    fitted on the rest) and score it on ``val`` with the initial-state rule of the physical
+    model (``init_window``).
+
+    Raises:
+        FitError, DataError: the reference could not be fitted (the caller notes it and goes
+            on without one).
+    """
+    # a state-initialisation window counts samples at the recording's rate: no thinning then
+    est = list(fit_segs) if init_window > 0 else _thin(fit_segs)
+    if cross_validate:
+        fit_part, sel = [], []
+        for s in est:
+            k = round((1.0 - HOLDOUT) * s.n)
+            if k < 20 or s.n - k < 20:
+                raise DataError(f"{s.name}: too short to hold out {100 * HOLDOUT:g} % for the "
+                                "linear reference's order")
+            fit_part.append(s.rows(0, k))
+            sel.append(s.rows(k, s.n))
+        chosen_on = (f"the last {100 * HOLDOUT:g} % of each estimation segment (fitted on the "
+                     "rest); its validation figures below are in sample")
+        ref = LinearReference(max_order=max_order, init_window=init_window, seed=seed).fit(
+            fit_part, sel)
+        ref = LinearReference(max_order=ref.order_, init_window=init_window,
+                              seed=seed).fit(est, sel)
+    else:
+        chosen_on = "the validation (selection) data"
+        ref = LinearReference(max_order=max_order, init_window=init_window, seed=seed).fit(
+            est, list(val))
+    preds = [ref.predict(s) for s in val]
+    names = val[0].output_names
+    vf = figures([s.y for s in val], preds, ref.n_estimated_, names)
+    ef = figures([s.y for s in est], [ref.predict(s) for s in est], ref.n_estimated_, names)
+    return ReferenceStage(model=ref, val=vf, val_pred=preds, est=ef, chosen_on=chosen_on)
+
+
+def mapped_starts(model: OEModel, ref: LinearReference, fit_segs: Sequence[Segment],
+                  seed: int, keep: int = 2) -> list[MappedStart]:
+    """Starts of the physical structure mapped from the reference's frequency response
+    (:func:`dvt_identify.startmap.frequency_response_starts`), as full start vectors (the model
+    effects at their initial values) in ``MappedStart.theta``; empty when the structure's
+    outputs or inputs differ from the reference's or nothing could be mapped."""
+    st = model.structure
+    n = model.n_struct
+    if n == 0:
+        return []
+    specs = model.specs[:n]
+    prior = np.array([p.initial for p in specs], dtype=float)
+    lo = np.array([p.lower for p in specs], dtype=float)
+    hi = np.array([p.upper for p in specs], dtype=float)
+    duration = max(s.n * s.dt for s in fit_segs)
+    try:
+        found = frequency_response_starts(st, ref.A_, ref.B_, ref.C_, ref.dt_, duration, prior,
+                                          lo, hi, keep=keep, seed=seed)
+    except (FitError, ValueError, np.linalg.LinAlgError):
+        return []
+    full = model.initial()
+    out = []
+    for s in found:
+        th = full.copy()
+        th[:n] = s.theta
+        out.append(MappedStart(th, s.mismatch, s.origin))
+    return out
