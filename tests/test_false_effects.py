@@ -1,13 +1,12 @@
-"""False effects on a clean plant: independent clean runs, nothing should be accepted.
+"""No false cause on clean plants: randomised clean plants accept nothing.
 
-Each seed makes two independent runs of the simulated plant with no hidden effect (offline runner
-through the driver's supervisor, as ``tests/test_undeclared_effects.py`` makes its validation
-runs): a shortened ``ident`` experiment (neutral PRBS and multisine, sun-speed steps with
-reversals, gears 1, 2 and 3 each locked by its band with PRBS, stop; about 13 s at 1 kHz) with its
-own experiment and noise seeds for estimation, another for validation. The identifier (default
-``dvt`` description, identifiability check, drift check, one augmentation round, fit at 100 Hz)
-must accept a false effect on at most 1 of the 20 seeds, and every parameter at a bound must
-appear in the report's warnings. The figures are printed (``pytest -s``).
+40 seeds, each a clean plant (no hidden effect) whose inertias and dampings are drawn per seed,
+half of them recorded at 1 kHz and half at the thesis's 62.5 Hz, with the sensors' noise at 0.5,
+1 and 2 times the bench's in turn (``tests/false_effects_run.py``). Each is identified as the
+CLI does it (default ``dvt`` description and loop settings, estimation on one run, validation on
+an independent second one). The claim: no effect is accepted on any of them. With 0 of 40 the
+one-sided 95 % Clopper-Pearson upper bound on the false-acceptance rate per clean run is
+1 - 0.05^(1/40) = 7.2 % (printed with the per-case figures, ``pytest -s``).
 """
 
 from __future__ import annotations
@@ -20,27 +19,41 @@ from pathlib import Path
 
 import pytest
 from false_effects_run import one_seed
+from scipy import stats
 
 pytestmark = pytest.mark.slow
-SEEDS = range(1, 21)
+SEEDS = range(40)
 
 
-def test_clean_runs_accept_at_most_one_false_effect(tmp_path: Path) -> None:
+def upper_bound(failures: int, n: int, level: float = 0.95) -> float:
+    """One-sided Clopper-Pearson upper bound on a rate from ``failures`` of ``n``."""
+    if failures >= n:
+        return 1.0
+    return float(stats.beta.ppf(level, failures + 1, n - failures))
+
+
+@pytest.mark.timeout(2400)
+def test_randomised_clean_plants_accept_no_effect(tmp_path: Path) -> None:
     t0 = time.monotonic()
     workers = max(1, min(2, os.cpu_count() or 1))
     # spawned workers: by this point the test process holds rclpy/DDS threads of earlier tests,
-    # and a forked child of a multi-threaded process can crash (it once segfaulted in the GC)
+    # and a forked child of a multi-threaded process can crash
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
         rows = list(pool.map(one_seed, SEEDS, [str(tmp_path)] * len(SEEDS)))
     for r in rows:
-        print(f"seed {r['seed']:2d}: validation fit {r['val_fit']}, accepted {r['accepted']}, "
-              f"refits {r['tried']}, drift {r['drift']}, at bounds {r['at_bounds']}, "
-              f"{r['seconds']} s")
+        print(f"seed {r['seed']:2d} {r['rate_hz']:6g} Hz noise x{r['noise_scale']}: validation "
+              f"fit {r['val_fit']}, accepted {r['accepted']}, refits {r['tried']}, "
+              f"{'stopped at the noise floor, ' if r['stopped'] else ''}{r['seconds']} s")
     false = [r for r in rows if r["accepted"]]
-    print(f"false effects accepted on {len(false)} of {len(rows)} clean seeds; "
+    n = len(rows)
+    print(f"false effects accepted on {len(false)} of {n} randomised clean plants "
+          f"(95 % upper bound on the rate {100 * upper_bound(len(false), n):.1f} %); "
           f"{time.monotonic() - t0:.0f} s")
-    assert len(false) <= 1, [(r["seed"], r["accepted"]) for r in false]
-    assert all(not r["unreported_bounds"] for r in rows), [
-        (r["seed"], r["unreported_bounds"]) for r in rows if r["unreported_bounds"]]
-    # a clean plant drifts nowhere
-    assert sum(1 for r in rows if r["drift"]) <= 1, [(r["seed"], r["drift"]) for r in rows]
+    assert {r["rate_hz"] for r in rows} == {1000.0, 62.5}
+    assert len({r["noise_scale"] for r in rows}) == 3
+    assert false == [], [(r["seed"], r["accepted"]) for r in false]
+
+
+def test_the_binomial_bound_is_the_clopper_pearson_one() -> None:
+    assert upper_bound(0, 40) == pytest.approx(1 - 0.05 ** (1 / 40), rel=1e-9)
+    assert upper_bound(40, 40) == 1.0

@@ -306,6 +306,8 @@ def test_unverifiable_push_is_rolled_back(procs, rclpy_context, tmp_path):
     states = [v.get("state") for _, _, v in loop.steps]
     assert "rolling_back" in states and any(lvl == 1 and "rolled_back" in m
                                             for lvl, m, _ in loop.steps), loop.steps[-3:]
+    print(f"\nunverifiable push: timings {rep['timings']}; refit "
+          f"{rep['refit'].get('refit_seconds', 0):.1f} s")
 
 
 def test_false_alarm_on_a_good_model_is_not_pushed(procs, rclpy_context, tmp_path):

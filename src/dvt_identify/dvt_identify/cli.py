@@ -12,18 +12,20 @@ them, fits the baseline output-error model, runs the augment loop and writes
 ``DIR/series/*.csv``, with ``--mcap`` bags; :mod:`dvt_identify.series`). The validation bags
 choose the effects (a selection figure); ``--test`` bags are read after every choice and give
 a figure that took no part in any. ``--select-on holdout`` chooses on the held-out end of the
-estimation bags instead, ``--select-on cv`` by leave-one-bag-out cross-validation across the
-estimation bags (at least two; each bag simulated by the model fitted on the others, the
-pooled out-of-fold errors in the acceptance test, the accepted model fitted on all of them);
-both treat the ``--validate`` bags, if any, as test data. Progress goes to stderr; the last
-line on stdout summarises the result. Progress is one line rewritten in place when stderr is a
-terminal (the baseline, each accepted effect and the report stay as lines) and nothing when it
-is not (a pipe, a log); data warnings and errors are always shown.
+estimation bags instead, ``--select-on cv`` by cross-validation: leave-one-bag-out across the
+estimation bags, or across contiguous blocks of a single bag (each simulated by the model
+fitted on the others, the pooled out-of-fold errors in the acceptance test, the accepted model
+fitted on all of them); both treat the ``--validate`` bags, if any, as test data. Progress goes
+to stderr; stdout ends with the summary: the test figures first (RMSE and fit, the linear
+reference beside them), then the selection figures and the accepted effects. Progress is one
+line rewritten in place when stderr is a terminal (the baseline, each accepted effect and the
+report stay as lines) and nothing when it is not (a pipe, a log); data warnings and errors are
+always shown.
 
 Exit status (as ``dvt-bag``): 0 success; 1 bad data or files (a bag that cannot be read or
 checked, a bad description, a failed fit), with one line ``dvt-identify: error: <reason>`` on
 stderr; 2 bad usage (unknown option, missing ``--validate``/``--out``), argparse's usage
-message (also ``--select-on cv`` with fewer than two estimation bags). ``dvt-bag recover
+message. ``dvt-bag recover
 PATH`` is suggested only for a bag directory (or ``.mcap`` file) whose MCAP cannot be read.
 
 ``--check`` only asks whether the estimation bags are enough (no fit,
@@ -129,7 +131,7 @@ def summary_lines(result: IdentificationResult) -> list[str]:
     acc = [d.score.label for d in result.accepted] or ["none"]
     sel = {"validation": "validation fit (selection)",
            "holdout": "held-out fit (selection)",
-           "cv": "out-of-fold fit (selection, leave-one-bag-out)"}.get(
+           "cv": "out-of-fold fit (selection, cross-validation)"}.get(
                str(getattr(result, "selection", "validation")), "validation fit (selection)")
     lines.append(f"{sel}: " + ", ".join(
         f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(fin.val.output_names,
@@ -175,8 +177,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     default="validation",
                     help="data that choose the effects: the validation bags (default), the "
                          "held-out last 30 %% of each estimation bag (holdout), or "
-                         "leave-one-bag-out cross-validation across the estimation bags (cv, "
-                         "at least 2); with holdout and cv the --validate bags are test data")
+                         "cross-validation (cv: leave-one-bag-out across the estimation bags, "
+                         "or across contiguous blocks of a single bag); with holdout and cv the "
+                         "--validate bags are test data")
     ap.add_argument("--init-window", type=int, default=0, metavar="N",
                     help="test initial states from the first N samples only (benchmark "
                          "style; figures on the rest)")
@@ -187,9 +190,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                                             and args.select_on == "validation")):
         ap.error("--validate and --out are required (unless --check; --validate is optional "
                  "with --select-on holdout or cv)")
-    if not args.check and args.select_on == "cv" and len(args.bags) < 2:
-        ap.error(f"--select-on cv: leave-one-bag-out cross-validation needs at least 2 "
-                 f"estimation bags, got {len(args.bags)}")
     try:
         if args.check:
             return _check(args)

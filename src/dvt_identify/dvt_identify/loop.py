@@ -98,6 +98,12 @@ Array = NDArray[np.float64]
 MIN_EXPLAINED = 0.10
 """Least share of the validation residual's structured variance (above the sensor noise floor)
 an accepted effect must remove (rule (d) of the module docstring)."""
+LIKELY_GAIN = 0.2
+"""A candidate whose refit cuts the validation loss by at least this share (relative), is
+admissible and removes at least :data:`MIN_EXPLAINED` of the structured residual, but misses
+significance (the validation test, or LR/BIC on the estimation data) is reported as "likely,
+not proven" with its figures (short records: the test lacks the samples, not the effect the
+size)."""
 FLOOR_OVERRIDE = 0.25
 """A residual the first-difference verdict calls at the noise floor still gets its round when a
 candidate's score explains at least this share of it (or a sensor map shows its signature):
@@ -222,6 +228,8 @@ class Decision:
         stage: the refitted model (``None`` if the refit failed).
         explained_share: share of the validation residual's structured variance the effect
             removed (:func:`explained_share`; rule (d)).
+        likely: rejected only for want of significance although its gain is large
+            (:data:`LIKELY_GAIN`): "likely, not proven".
     """
 
     round: int
@@ -237,6 +245,7 @@ class Decision:
     validation: Comparison | None = None
     stage: Stage | None = None
     explained_share: float = math.nan
+    likely: bool = False
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready summary (with the validation test's gain, statistic and p-value)."""
@@ -248,7 +257,8 @@ class Decision:
             "validation_fit_after": self.val_fit_after,
             "validation_fit_gain": self.val_fit_after - self.val_fit_before,
             "explained_share": self.explained_share if math.isfinite(self.explained_share)
-            else None, "min_explained_share": MIN_EXPLAINED}
+            else None, "min_explained_share": MIN_EXPLAINED,
+            "likely_not_proven": self.likely}
         if self.validation is not None:
             v = self.validation
             out["validation_test"] = {
@@ -282,6 +292,9 @@ class IdentificationResult:
     """Figures on test data read after every choice (:class:`dvt_identify.series.TestFigures`)."""
     reference: ReferenceStage | None = None
     """The black-box linear reference scored like the physical model (``None``: not fitted)."""
+    agreement: Any = None
+    """Whether the test records agree with the estimation records
+    (:class:`dvt_identify.disagree.Agreement`; ``None`` without test records)."""
     selection: str = "validation"
     """Which data chose the effects: ``validation`` (the validation bags), ``holdout`` (the
     held-out end of each estimation segment) or ``cv`` (leave-one-bag-out cross-validation
@@ -484,8 +497,9 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     if folds is not None:
         say(f"cross-validation: refitting the baseline without each of the {len(folds)} "
             "estimation bags in turn")
-        notes.append(f"effects chosen by leave-one-bag-out cross-validation across the "
-                     f"{len(folds)} estimation bags: the validation figures are out of fold "
+        notes.append(f"effects chosen by cross-validation across the "
+                     f"{len(folds)} estimation folds (bags, or contiguous blocks of one bag): "
+                     "the validation figures are out of fold "
                      "(each bag simulated by the model fitted on the others); the models "
                      "reported are fitted on all estimation bags")
     baseline = make_stage("baseline", base_fit, est, val, same_rate, cfg.lags,
@@ -678,11 +692,19 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
         why.append(f"{share_text} (< {100 * MIN_EXPLAINED:g} %: significant, but too small "
                    "to be a cause)")
     ok = not why
+    # large, admissible and a real share of the structured residual, but not significant
+    likely = (not ok and bad is None and dm.relative_gain >= LIKELY_GAIN
+              and share >= MIN_EXPLAINED)
     reason = (f"LR {lr:.4g} > {thr:.3g}, BIC {dbic:+.4g}, {val_text}, {share_text}" if ok
               else "; ".join(why))
+    if likely:
+        n_val = sum(s.n for s in val)
+        reason = (f"likely, not proven: it cuts the validation error by "
+                  f"{100 * dm.relative_gain:.3g} % and {share_text}, but {reason} (with "
+                  f"{n_val} validation samples; more data would decide)")
     return Decision(rnd, sc, ok, reason, lr=lr, lr_threshold=thr, dof=k, delta_bic=dbic,
                     val_fit_before=before, val_fit_after=after, validation=dm, stage=stage,
-                    explained_share=share)
+                    explained_share=share, likely=likely)
 
 
 def lr_text(lr: float, thr: float) -> str:

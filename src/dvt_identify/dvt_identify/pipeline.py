@@ -32,9 +32,9 @@ from dvt_identify.data import (
     lowpass,
 )
 from dvt_identify.description import Description, load_description
-from dvt_identify.errors import DataError
+from dvt_identify.errors import DataError, DvtIdentifyError
 from dvt_identify.fit import Progress, stderr_progress
-from dvt_identify.loop import IdentificationResult, LoopConfig, identify
+from dvt_identify.loop import CV_MIN_BAGS, IdentificationResult, LoopConfig, bag_of, identify
 from dvt_identify.push import Push, model_node_parameters
 from dvt_identify.report import write_report
 from dvt_model.progress import ProgressLine, fraction
@@ -173,7 +173,8 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
             figures took no part in fitting or choosing effects.
         select_on: ``validation`` (the validation bags choose the effects), ``holdout``
             (the last 30 % of each estimation segment chooses them) or ``cv`` (leave-one-bag-out
-            cross-validation across at least 2 estimation bags); with ``holdout`` and ``cv``
+            cross-validation across the estimation bags; with one bag, across contiguous blocks
+            of it, :func:`dvt_identify.series.block_split`); with ``holdout`` and ``cv``
             the validation bags are test data, read after every choice.
         init_window: every simulation (fit, selection, test) starts from the state the first
             ``init_window`` samples of its segment give (benchmark style); 0: initial states
@@ -229,6 +230,11 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
             "estimation segment")
         result = identify(fit_part, held, desc, cfg, say, check=chk)
     elif select_on == "cv":
+        if len({bag_of(s.name) for s in est}) < CV_MIN_BAGS:
+            # one record: the folds are contiguous blocks of it (cross-validation over segments)
+            est = series_mod.block_split(est)
+            say(f"cross-validation over {len(est)} contiguous blocks of the estimation "
+                "record(s): each block simulated by the model fitted on the others")
         result = identify(est, [], desc, cfg, say, check=chk, cross_validate=True)
     else:
         result = identify(est, val, desc, cfg, say, check=chk)
@@ -240,6 +246,15 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         result.test = series_mod.evaluate_test(
             result.baseline.fit, result.final.fit, test, init_window,
             result.reference.model if result.reference is not None else None)
+        try:
+            from dvt_identify.disagree import compare_records
+
+            result.agreement = compare_records(
+                result.final.fit, [*result.est_segments, *result.val_segments], test,
+                desc.structure.force_unit)
+            say(result.agreement.statement)
+        except DvtIdentifyError as exc:
+            say(f"records not compared: {exc}")
         say("test fit (no part in any choice): " + ", ".join(
             f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(
                 result.test.final.output_names, result.test.baseline.fit_percent,

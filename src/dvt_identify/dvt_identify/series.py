@@ -30,6 +30,7 @@ the same numbers (the test proves it).
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -76,6 +77,33 @@ def holdout_split(segments: Sequence[Segment], fraction: float = HOLDOUT_FRACTIO
         fit.append(seg.rows(0, k))
         sel.append(seg.rows(k, name=f"{seg.name}#holdout", from_zero=True))
     return fit, sel
+
+
+BLOCK_MIN_SAMPLES = 100
+"""Fewest samples of one block of a record split for cross-validation (:func:`block_split`)."""
+MAX_BLOCKS = 5
+"""Most blocks a record is split into for cross-validation."""
+
+
+def block_split(segments: Sequence[Segment], blocks: int | None = None) -> list[Segment]:
+    """Each segment cut into contiguous blocks (``<name>@block<k>``), the folds of
+    cross-validation over segments when there is one record: ``blocks`` per segment (default:
+    as many as :data:`MAX_BLOCKS` allows with at least :data:`BLOCK_MIN_SAMPLES` each, and at
+    least 2). Each block keeps its own initial state.
+
+    Raises:
+        DataError: a segment too short for 2 blocks of :data:`BLOCK_MIN_SAMPLES`.
+    """
+    out = []
+    for seg in segments:
+        k = blocks if blocks is not None else min(MAX_BLOCKS, seg.n // BLOCK_MIN_SAMPLES)
+        if k < 2 or seg.n // k < BLOCK_MIN_SAMPLES:
+            raise DataError(f"{seg.name}: {seg.n} samples are too few for cross-validation "
+                            f"over blocks (at least 2 blocks of {BLOCK_MIN_SAMPLES} samples)")
+        edges = [round(i * seg.n / k) for i in range(k + 1)]
+        for i, (a, b) in enumerate(itertools.pairwise(edges), start=1):
+            out.append(seg.rows(a, b, name=f"{seg.name}@block{i}", from_zero=True))
+    return out
 
 
 @dataclass

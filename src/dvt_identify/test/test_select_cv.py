@@ -1,5 +1,5 @@
-"""``--select-on cv``: effects chosen by leave-one-bag-out cross-validation across the
-estimation bags; the test bags take no part.
+"""``--select-on cv``: effects chosen by cross-validation, leave-one-bag-out across the
+estimation bags or across contiguous blocks of a single one; the test bags take no part.
 
 The toy is the cart of ``conftest.py`` (``M v' = F - Fv v``, M 2.5 kg, Fv 4 N s/m, random
 force steps, 1 % noise), read with or without a constant sensor offset of 0.3 m/s (about a
@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from dvt_identify import pipeline
-from dvt_identify.cli import EXIT_USAGE, main
 from dvt_identify.data import Segment
 from dvt_identify.description import Description
 from dvt_identify.errors import DataError
@@ -103,13 +102,25 @@ def test_cv_needs_two_bags_and_no_validation_data(
         identify([one, two], [two], d, CFG, cross_validate=True)
 
 
-def test_cli_refuses_cv_with_one_bag(tmp_path: Path, capsys: pytest.CaptureFixture[str]
-                                     ) -> None:
-    with pytest.raises(SystemExit) as exc:
-        main([str(tmp_path / "est"), "--out", str(tmp_path / "o"), "--select-on", "cv"])
-    assert exc.value.code == EXIT_USAGE
-    err = capsys.readouterr().err
-    assert "--select-on cv" in err and "at least 2 estimation bags, got 1" in err
+def test_one_record_is_cross_validated_over_contiguous_blocks(
+        cart_desc: Callable[..., Description], cart_record: Record) -> None:
+    """A single short record (600 samples): the folds are its contiguous blocks, each
+    simulated by the model fitted on the others; the true offset is accepted out of fold and
+    the reported model is fitted on the whole record."""
+    from dvt_identify.series import block_split
+
+    d = cart_desc()
+    rec = cart_record(d, "only", 11, n=600, offset=OFFSET)
+    blocks = block_split([rec])
+    assert [b.name for b in blocks] == [f"only@block{k}" for k in range(1, 6)]
+    assert sum(b.n for b in blocks) == rec.n and cv_folds(blocks) == [[k] for k in range(5)]
+    res = identify(blocks, [], d, CFG, cross_validate=True)
+    assert res.selection == "cv" and len(res.final.folds) == 5
+    assert [dec.score.label for dec in res.accepted] == ["sensor_offset@v"]
+    par, std = res.final.parameters(), res.final.fit.parameter_std()
+    assert abs(par["sensor_offset"] - OFFSET) < 3 * std["sensor_offset"]
+    with pytest.raises(DataError, match="too few for cross-validation over blocks"):
+        block_split([cart_record(d, "tiny", 12, n=150)])
 
 
 def test_cv_selection_never_reads_the_test_bags(

@@ -189,3 +189,25 @@ def test_falling_damping_is_reported_as_drift_not_static_effects() -> None:
     rep = build_report(res)
     assert any(w.startswith("drift: Fv falls") for w in rep["warnings"]), rep["warnings"]
     assert any("augment loop not run" in n for n in rep["notes"])
+
+
+def test_a_large_gain_that_misses_significance_is_reported_likely_not_proven(
+        cart_desc, cart_record) -> None:
+    """A short record (150 samples of the conftest cart, a 0.05 m/s sensor offset): the offset
+    cuts the validation error by two thirds but the validation test's p-value (0.016) misses
+    alpha 0.01 on so few samples: not accepted, and the report says "likely, not proven" with
+    its figures instead of nothing."""
+    from dvt_identify.report import build_report
+
+    d = cart_desc()
+    est, val = cart_record(d, "e", 2, n=150, offset=0.05), cart_record(d, "v", 102, n=150,
+                                                                       offset=0.05)
+    res = identify([est], [val], d, LoopConfig(starts=1, refit_starts=1, drift_windows=0))
+    assert res.accepted == []
+    dec = next(x for x in res.decisions if x.score.label == "sensor_offset@v")
+    assert dec.likely and not dec.accepted
+    assert dec.validation is not None and dec.validation.relative_gain > 0.5
+    assert 0.01 < dec.validation.p_value < 0.05
+    remaining = build_report(res)["remaining"]
+    line = next(x for x in remaining if x.startswith("Likely, not proven: sensor_offset@v"))
+    assert "cuts the validation error by" in line and "150 validation samples" in line

@@ -22,6 +22,7 @@ from dvt_driver.link.protocol import Ack, Command, Hello, HelloAck, Mode, unwrap
 from dvt_driver.link.safety import Limits, MotorMode, ShiftSettings, Supervisor
 from dvt_driver.plant.core import PlantSim
 from dvt_driver.plant.hidden import HiddenEffects
+from dvt_driver.plant.settings import SensorConfig
 from dvt_driver.run.experiment_core import (
     BrakeCurrents,
     Experiment,
@@ -68,11 +69,14 @@ class OfflineRun:
 
 def run_offline(experiment: Experiment, params: TransmissionParams,
                 hidden: HiddenEffects | None = None, seed: int = 1,
-                limits: Limits | None = None, load: JointLoad | None = None) -> OfflineRun:
-    """Run ``experiment`` on a :class:`PlantSim` with ``hidden`` effects and an optional
-    declared joint ``load`` (see module doc); the session speaks protocol version 2."""
+                limits: Limits | None = None, load: JointLoad | None = None,
+                sensors: SensorConfig | None = None) -> OfflineRun:
+    """Run ``experiment`` on a :class:`PlantSim` with ``hidden`` effects, an optional
+    declared joint ``load`` and the bench's ``sensors`` (default :class:`SensorConfig`: their
+    noise levels and resolutions; see module doc); the session speaks protocol version 2."""
     period_s = experiment.sample_period_us * 1e-6
-    plant = PlantSim(params, hidden, experiment.sample_period_us, seed=seed, load=load)
+    plant = PlantSim(params, hidden, experiment.sample_period_us, seed=seed, load=load,
+                     sensors=sensors)
     hello = plant.handle(Hello())[0]
     cpr = ((hello.sun_counts_per_rev, hello.output_counts_per_rev)
            if isinstance(hello, HelloAck) else (0, 0))
@@ -133,10 +137,10 @@ def run_offline(experiment: Experiment, params: TransmissionParams,
 def record_offline(path: str | Path, experiment: Experiment, params: TransmissionParams,
                    hidden: HiddenEffects | None = None, seed: int = 1,
                    start_ns: int = 1_700_000_000_000_000_000,
-                   load: JointLoad | None = None) -> Path:
+                   load: JointLoad | None = None, sensors: SensorConfig | None = None) -> Path:
     """Run offline and write a contract bag at ``path`` with its ``truth.yaml``; the
     ``/dvt/joint_states`` messages carry the encoder positions (protocol version 2)."""
-    run = run_offline(experiment, params, hidden, seed, load=load)
+    run = run_offline(experiment, params, hidden, seed, load=load, sensors=sensors)
     stamps = start_ns + np.round(run.t * 1e9).astype(np.int64)
     truth = parse_truth(run.truth, "the plant's truth")
     truth["made_by"] = f"dvt_driver.plant.offline.record_offline (experiment {experiment.name})"

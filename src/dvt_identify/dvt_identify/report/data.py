@@ -270,6 +270,12 @@ def remaining_summary(result: IdentificationResult) -> list[str]:
                        f"{100 * s.r2:.2f} %, LM p = {s.p_value:.3g}); not accepted: {why}.")
     elif not result.config.augment:
         out.append("The augment loop was not run (--no-augment).")
+    accepted_labels = {d.score.label for d in result.accepted}
+    seen: set[str] = set()
+    for d in result.decisions:  # large but not significant: said, not silenced
+        if d.likely and d.score.label not in accepted_labels and d.score.label not in seen:
+            seen.add(d.score.label)
+            out.append(f"Likely, not proven: {d.score.label} (round {d.round}): {d.reason}.")
     out.extend(result.description.notes)
     return out
 
@@ -419,6 +425,8 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
         "selection": _selection(result),
         "test": result.test.as_dict() if getattr(result, "test", None) is not None else None,
         "linear_reference": reference_summary(result),
+        "records_agree": (result.agreement.as_dict() if getattr(result, "agreement", None)
+                          is not None else None),
     }
     if rep["candidates"] is None:
         del rep["candidates"]

@@ -129,6 +129,10 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
                          f"| {_f(t['final']['rmse'][o])} |"
                          + (f" {_f(tr['fit_percent'][o])} | {_f(tr['rmse'][o])} |" if tr
                             else ""))
+        ag = rep.get("records_agree")
+        if ag:
+            lines += ["", ("**" + ag["statement"] + "**") if ag["disagree"]
+                      else ag["statement"]]
     lines += ["", "## Parameters (final model)", "",
               "| parameter | value | std dev | relative std % |", "|---|---|---|---|"]
     rel = f.get("parameter_relative_std") or {}
