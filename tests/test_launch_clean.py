@@ -34,11 +34,12 @@ CLEAN_S = 150.0
 """Clean testing the run must reach [s] (after the re-arm, the settling and the reference)."""
 LEARN_S = 10.0
 """The detector's reference window [s] (as in the episode runs)."""
-RUN_S = CLEAN_S + 50.0
-"""Length of the run [s]: start-up and re-arm (about 15-25 s), settling, reference, testing."""
+RUN_S = CLEAN_S + 80.0
+"""Length of the run [s]: start-up and re-arm (15-25 s; 21 s at a load average of 7-9 on the
+2 cores), settling and reference (15 s), testing; the allowance covers a start-up three times
+slower than measured (the run cannot end early: a clean run has no episode to wait for)."""
 
 
-@pytest.mark.flaky(reruns=1)  # real-time chain on a shared 2-core machine
 def test_minutes_of_a_clean_plant_raise_no_alarm(procs: Procs, tmp_path: Path) -> None:
     logdir = tmp_path / "run"
     args = episode_launch_args(logdir, rate=250.0, change_at=100000.0, learn_s=LEARN_S,

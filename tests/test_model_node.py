@@ -313,9 +313,12 @@ def test_bad_settings_refused_and_predictions_stay_finite(procs, rclpy_context):
 
 # -- positions with the arm load: v2 plant -> driver -> model node --------------------------------
 
-# real-time chain on a shared 2-core machine: the test process commands the sun speed at 20 Hz;
-# once, under load, the arm rose 9 rad of carrier 3 in the 3 s instead of more than 20
-@pytest.mark.flaky(reruns=2)
+LIFT_RAD = 20.0
+"""Carrier-3 rotation of the lift [rad] (0.2 rad of arm on the 100:1 output stage)."""
+LIFT_S = 15.0
+"""Longest lift [s] (about 3 s when the machine keeps up)."""
+
+
 def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context, tmp_path):
     """A clean plant carrying the thesis's arm with its payload, the driver (protocol 2, so
     /dvt/joint_states carries positions) and two model nodes: one that knows the load
@@ -360,7 +363,7 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
     pub_brakes = node.create_publisher(JointState, contract.CMD_BRAKE_CURRENTS,
                                        rosutil.COMMAND_QOS)
 
-    def spin(seconds, speed=None):
+    def spin(seconds, speed=None, until=None):
         end = time.monotonic() + seconds
         nxt = 0.0
         while time.monotonic() < end:
@@ -368,6 +371,18 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
                 pub_speed.publish(Float64(data=speed))
                 nxt = time.monotonic() + 0.05
             exe.spin_once(timeout_sec=0.01)
+            if until is not None and until():
+                return
+
+    first = {"scan": 0, "at": -1}  # index of the first prediction stamped after the start
+
+    def risen():  # carrier 3 turned LIFT_RAD since the lift began (the informed prediction)
+        pred = got["pred"]
+        while first["at"] < 0 and first["scan"] < len(pred):
+            if pred[first["scan"]][0] > start:
+                first["at"] = first["scan"]
+            first["scan"] += 1
+        return first["at"] >= 0 and pred[-1][1][1] - pred[first["at"]][1][1] > LIFT_RAD
 
     deadline = time.monotonic() + 30.0
     while not (len(got["known"]) > 200 and len(got["bare"]) > 200):
@@ -377,7 +392,10 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
     pub_brakes.publish(brakes)
     spin(0.3)
     start = time.time_ns()
-    spin(3.0, speed=120.0)  # lift the arm
+    # lift the arm until carrier 3 turned LIFT_RAD (about 3 s at 120 rad/s of sun in gear 3;
+    # under load the test's 20-Hz set-points come late and the lift takes longer: once it rose
+    # only 9 rad in a fixed 3 s); at most LIFT_S
+    spin(LIFT_S, speed=120.0, until=risen)
     spin(0.5)
     node.destroy_node()
     known = np.array([v for s, v in got["known"] if s > start])
@@ -386,7 +404,7 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
     assert len(known) > 500 and len(bare) > 500
     assert np.all(np.isfinite(known)) and np.all(np.isfinite(pred))
     # the arm rose: carrier 3 turned (0.35 rad of arm at 120 rad/s of sun in gear 3)
-    assert pred[-1, 1] - pred[0, 1] > 20.0
+    assert pred[-1, 1] - pred[0, 1] > LIFT_RAD, f"carrier 3 turned {pred[-1, 1] - pred[0, 1]}"
     # small: 0.5 s ahead the informed model is within a few sun turns' fraction and well
     # under a degree of arm angle (carrier 3 / 100); samples the busy machine drops (their
     # inputs held) and the quantised sun-speed anchor (1.5 rad/s steps) are most of it

@@ -117,7 +117,7 @@ def record_bias(fit: OEFit, segs: Sequence[Segment]) -> RecordBias:
         raise DataError("record_bias: the structure drives no input")
     w = fit.weights_
     names = segs[0].input_names
-    labels = []
+    labels = [f"{names[j]} {d}" for j, _ in pairs for d in ("+", "-")]
     cols: list[list[Array]] = []
     resid: list[Array] = []
     for seg in segs:
@@ -129,7 +129,7 @@ def record_bias(fit: OEFit, segs: Sequence[Segment]) -> RecordBias:
             scale = float(np.std(seg.u[:, j])) or 1.0
             h = 1e-3 * scale
             s = xs[:, k]
-            for lab, mask in ((f"{names[j]} +", s > 0), (f"{names[j]} -", s < 0)):
+            for mask in (s > 0, s < 0):
                 u = seg.u.copy()
                 u[:, j] += h * mask
                 try:
@@ -137,8 +137,6 @@ def record_bias(fit: OEFit, segs: Sequence[Segment]) -> RecordBias:
                 except DivergedError:
                     yh = y0
                 parts.append(((yh - y0) / w).ravel() / h)
-                if seg is segs[0]:
-                    labels.append(lab)
         cols.append(parts)
     k = len(labels)
     J = np.column_stack([np.concatenate([c[i] for c in cols]) for i in range(k)])
@@ -166,6 +164,8 @@ def compare_records(fit: OEFit, est: Sequence[Segment], test: Sequence[Segment],
     Raises:
         DataError: no segments, or no input the structure drives.
     """
+    seen: set[int] = set()
+    est = [s for s in est if not (id(s) in seen or seen.add(id(s)))]  # a segment once
     be = record_bias(fit, est)
     bt = record_bias(fit, test)
     d = bt.value - be.value

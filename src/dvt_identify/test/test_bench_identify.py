@@ -57,6 +57,7 @@ def test_monte_carlo_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     _all_finite(res)
 
 
+@pytest.mark.slow  # a whole benchmark run: about 2 min of CPU (measured 121 s)
 def test_timing_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     # baseline and augment loop on the first 3 s of the committed recordings (the scaling runs
     # repeat the baseline path; the exponent is checked on synthetic figures above)
