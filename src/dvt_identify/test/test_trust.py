@@ -133,7 +133,7 @@ def test_small_real_effect_accepted_by_the_validation_test() -> None:
 
 def test_an_effect_buried_in_the_sensor_noise_is_not_claimed() -> None:
     """The same windage under 5x the sensor noise: 3 % of the validation residual above the
-    noise floor, no candidate explains a quarter of it: the loop stops and says so (a
+    noise floor, no candidate explains a tenth of it: the loop stops and says so (a
     significant but tiny gain is not a cause)."""
     desc = replace(description(), candidates=tuple(
         c for c in description().candidates if c.effect in ("windage", "coulomb_friction")))
