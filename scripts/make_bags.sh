@@ -3,6 +3,9 @@
 #   dvt-launch sim = dvt-plant (simulated controller on a pty) -> dvt_driver_node -> dvt-recorder,
 #   with dvt-experiment sending the commands. Each bag gets truth.yaml (the plant's hidden
 #   effects) and run.yaml (how it was made) from the launcher. About 8 minutes.
+#   The effect presets draw their magnitudes from the plant seed (--seed N: draw N,
+#   dvt_driver.plant.hidden.draw): truth.yaml holds the drawn values (hidden) and the draw
+#   (hidden_draw); the tests compare what the identifier finds with them.
 #
 # Usage: scripts/make_bags.sh [OUTDIR [RUN ...]]   (default: bags, every run below)
 #

@@ -1,9 +1,10 @@
 """Write the validation pairs of the committed estimation recordings into ``bags/``.
 
 For each ``NAME=SOURCE`` pair, a second run of the same plant (the parameter set, hidden
-effects and noise model of ``bags/SOURCE/truth.yaml``) driven offline through the driver's
-supervisor (:mod:`dvt_driver.plant.offline`) with the source's experiment at experiment seed
-+ 100 and plant seed + 100 (the validation runs of ``tests/test_undeclared_effects.py``).
+effects and noise model of ``bags/SOURCE/truth.yaml``: the values the source's plant drew, with
+the record of the draw) driven offline through the driver's supervisor
+(:mod:`dvt_driver.plant.offline`) with the source's experiment at experiment seed + 100 and
+plant seed + 100 (the validation runs of ``tests/test_undeclared_effects.py``).
 
 Usage: ``.venv/bin/python scripts/make_validation_bags.py [OUTDIR] [NAME=SOURCE ...]``
 (default ``bags``, ``ident-coulomb-val=ident-coulomb ident-none-val=ident-none-1``).
@@ -11,6 +12,7 @@ Usage: ``.venv/bin/python scripts/make_validation_bags.py [OUTDIR] [NAME=SOURCE 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 import sys
@@ -24,6 +26,7 @@ from dvt_driver.plant.offline import run_offline
 from dvt_driver.run.experiment_core import build
 from dvt_model.contract import CURRENT_NAMES, CURRENTS, JOINT_STATE_TYPE, JOINT_STATES, SPEED_NAMES
 from dvt_model.params import load_parameters
+from dvt_model.recording import read_run_info, read_truth
 from dvt_model.recording.cdr import joint_state_cdr
 from dvt_model.recording.write import BagRecorder
 
@@ -34,14 +37,19 @@ LIMIT_BYTES = 3_000_000
 
 def make(out: Path, name: str, source: Path) -> Path:
     """Record the validation run of ``source`` as ``out/name``; returns its path."""
-    truth = yaml.safe_load((source / "truth.yaml").read_text())
-    made = yaml.safe_load((source / "run.yaml").read_text())
+    truth = read_truth(source)
+    made = read_run_info(source)
+    if truth is None or made is None:
+        raise SystemExit(f"{source}: needs truth.yaml and run.yaml")
     experiment = build(made["experiment"]["name"], seed=int(made["experiment"]["seed"]) + 100)
     dst = out / name
     if dst.exists():
         shutil.rmtree(dst)
-    run = run_offline(experiment, load_parameters(truth["plant"]["params"]),
-                      parse_hidden(truth["hidden"]), seed=int(truth["plant"]["seed"]) + 100)
+    # the source's drawn plant, with the record of its draw (written into the truth again)
+    hidden = dataclasses.replace(parse_hidden(truth["hidden"], source=f"{source.name}/truth.yaml"),
+                                 draw=truth.get("hidden_draw"))
+    run = run_offline(experiment, load_parameters(truth["plant"]["params"]), hidden,
+                      seed=int(truth["plant"]["seed"]) + 100)
     stamps = 1_700_000_000_000_000_000 + np.round(run.t * 1e9).astype(np.int64)
     # zstd chunks like the recorder's bags (the plain writer would give ~10 MB)
     with BagRecorder(dst, fsync=False, flush_period=math.inf, compression="zstd") as rec:

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Write the validation pairs of the committed estimation recordings into bags/ (or OUTDIR):
-# bags/ident-coulomb-val and bags/ident-none-val, second runs of the same plant preset
-# (truth.yaml of ident-coulomb / ident-none-1) driven offline through the driver's supervisor
+# bags/ident-coulomb-val and bags/ident-none-val, second runs of the same plant (the drawn
+# values in truth.yaml of ident-coulomb / ident-none-1) driven offline through the driver's supervisor
 # with experiment seed + 100 and plant seed + 100; zstd-compressed, about 2 MB each.
 # They are the validation data of `dvt-bench identify --compare` and tests/test_fit_quality.py.
 #

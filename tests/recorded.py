@@ -1,19 +1,18 @@
 """Identification on a committed recording in ``bags/`` with a fresh validation run of the same
-plant (shared by the tests on undeclared effects).
+plant, and the plant's drawn truth (shared by the tests on undeclared effects).
 
 Validation data: the plant whose hidden effects the recording's ``truth.yaml`` names (only tests
-read it, never the identifier), driven offline through the driver's supervisor with another
-experiment seed and noise seed.
+read it, never the identifier; the drawn values, :mod:`dvt_driver.plant.hidden.draw`), driven
+offline through the driver's supervisor with another experiment seed and noise seed.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+import dataclasses
+import math
 from pathlib import Path
 
-import yaml
-
-from dvt_driver.plant.hidden import parse_hidden
+from dvt_driver.plant.hidden import HiddenEffects, parse_hidden
 from dvt_driver.plant.offline import record_offline
 from dvt_driver.run.experiment_core import build
 from dvt_identify import identifiability
@@ -21,32 +20,60 @@ from dvt_identify.description import load_description
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.pipeline import load_segments
 from dvt_model.params import load_parameters
+from dvt_model.recording import read_run_info, read_truth
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
+
+PLANT_MEMBER = {"sun": "sun_shaft", "carrier3": "carrier3"}
+"""The plant's kinematic member -> the dvt description's state (``where``) it is."""
+
+STD_BOUND = 3.0
+"""An estimate must lie within this many reported standard deviations of the truth."""
+
+
+def truth_effects(bag: Path) -> HiddenEffects:
+    """The plant of recording ``bag``: the hidden effects its ``truth.yaml`` states (the drawn
+    values; ``draw`` the record of the draw, ``None`` for a preset without distributions)."""
+    truth = read_truth(bag)
+    assert truth is not None, f"{bag}: no truth.yaml"
+    h = parse_hidden(truth["hidden"], source=f"{bag.name}/truth.yaml")
+    return dataclasses.replace(h, draw=truth.get("hidden_draw"))
+
+
+def within(name: str, estimate: float, std: float, truth: float,
+           bound: float = STD_BOUND) -> None:
+    """Assert ``|estimate - truth| <= bound * std`` (``std`` finite and > 0), naming the
+    parameter and the figures."""
+    assert math.isfinite(std) and std > 0, f"{name}: no usable reported std ({std})"
+    z = abs(estimate - truth) / std
+    assert z <= bound, (f"{name}: estimate {estimate:.6g} +- {std:.3g} (1 std) vs truth "
+                        f"{truth:.6g}: {z:.2f} std off (bound {bound:g})")
 
 
 def validation_run(name: str, out: Path) -> Path:
     """Record the validation run of recording ``name`` into ``out`` (experiment and noise seeds
-    + 100); its path."""
+    + 100, the same drawn plant); its path."""
     bag = BAGS / name
-    truth = yaml.safe_load((bag / "truth.yaml").read_text())
-    made = yaml.safe_load((bag / "run.yaml").read_text())
+    truth = read_truth(bag)
+    made = read_run_info(bag)
+    assert truth is not None and made is not None, f"{bag}: truth.yaml and run.yaml needed"
     experiment = build(made["experiment"]["name"], seed=int(made["experiment"]["seed"]) + 100)
     return record_offline(out, experiment, load_parameters(truth["plant"]["params"]),
-                          parse_hidden(truth["hidden"]), seed=int(truth["plant"]["seed"]) + 100)
+                          truth_effects(bag), seed=int(truth["plant"]["seed"]) + 100)
 
 
-def identify_recorded(name: str, tmp_path: Path, max_effects: int = 1
+def identify_recorded(name: str, tmp_path: Path, max_effects: int | None = None
                       ) -> tuple[IdentificationResult, Path]:
     """Identify the ``dvt`` description on recording ``name`` (estimation) and its validation
-    run (recorded under ``tmp_path / 'val'``), at most ``max_effects`` accepted effects; the
-    result and the validation run's path."""
+    run (recorded under ``tmp_path / 'val'``), at most ``max_effects`` accepted effects
+    (``None``: the description's own, 3 rounds); the result and the validation run's path."""
     val = validation_run(name, tmp_path / "val")
     desc = load_description("dvt")
     est = load_segments([BAGS / name], desc)
     vals = load_segments([val], desc)
     chk = identifiability.check(desc, est)
     desc = identifiability.apply(desc, chk)
-    cfg = replace(LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate),
-                  max_effects=max_effects)
+    cfg = LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate)
+    if max_effects is not None:
+        cfg = dataclasses.replace(cfg, max_effects=max_effects)
     return identify(est, vals, desc, cfg, check=chk), val

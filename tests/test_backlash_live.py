@@ -1,18 +1,27 @@
 """Topic level (issue #10): backlash found by the identifier is pushed to the live model node.
 
 The committed recording ``ident-backlash`` comes from a plant with play in a compliant spline
-between carrier 3 and a load that carries the tachometer (hidden preset ``backlash``: gap
-0.02 rad, contact 387 rad/s, damping ratio 0.065; declared to nobody). The identifier accepts
-``backlash@carrier3(compliant)`` and the push maps it to a ``spline_play`` term on the node's
-carrier-3 output (no longer ``not_pushed``). A real ``dvt_model_node`` takes the pushed
-parameters from a params file; ``dvt-replay`` publishes a slice of a fresh validation run of the
-same plant into it, once with the pushed terms and once with the ``effects`` parameter emptied
-(everything else as pushed): the term alone lowers the live carrier-3 residual.
+between carrier 3 and a load that carries the tachometer (hidden preset ``backlash``, its gap,
+stiffness, damping and load drawn from the plant seed: ``truth.yaml``, which only the tests
+read; declared to nobody). The identifier (the description's full loop, 3 rounds) accepts
+``backlash@carrier3(compliant)`` and nothing else, and the push maps it to a ``spline_play``
+term on the node's carrier-3 output (no longer ``not_pushed``). A real ``dvt_model_node`` takes
+the pushed parameters from a params file; ``dvt-replay`` publishes a slice of a fresh validation
+run of the same plant into it, once with the pushed terms and once with the ``effects``
+parameter emptied (everything else as pushed): the term alone lowers the live carrier-3
+residual.
 
-Measured offline with the node's core (``build_predictor`` + ``update``) over 8 s slices of the
-validation run: carrier-3 residual RMS 0.69-0.78 times that without the term (whole run 1.10 ->
-0.81 rad/s); the sun's residual is unchanged (the play is on carrier 3's sensor). About 50 s on
-2 cores (20 s the identification).
+Tolerance of the pushed gap: within a factor 2 of the drawn gap. Not 3 reported std: the refit
+of the compliant play (an impact oscillator) does not move the gap from the scorer's grid value
+(``gap_scan`` 0.005, 0.01, 0.02, 0.04 rad, a factor 2 apart) and reports a degenerate std
+(about 1e-9 rad, a zero finite-difference Jacobian, not an uncertainty); the test checks that,
+so it fails once the refit reports a real std (then the bound becomes 3 std). Measured: the
+committed draw (gap 0.0416 rad) gives the grid value 0.04; the nominal plant (0.03) gave 0.02.
+
+Live residual: carrier-3 RMS with the term below 0.85 times that without (measured 0.81 on the
+committed draw, 0.69-0.78 on the nominal plant, over 8 s slices); the sun's residual unchanged
+within 10 % (the play is on carrier 3's sensor). About 1.2 min on 2 cores (most of it the
+identification).
 """
 
 from __future__ import annotations
@@ -23,7 +32,7 @@ from pathlib import Path
 import pytest
 import yaml
 from model_listener import ModelListener
-from recorded import identify_recorded
+from recorded import BAGS, identify_recorded, truth_effects
 
 from dvt_identify.pipeline import model_push
 from dvt_model.contract import MODEL_RESIDUAL
@@ -40,14 +49,20 @@ SKIP = 200
 def test_compliant_backlash_is_pushed_and_lowers_the_live_residual(procs, rclpy_context,
                                                                    tmp_path: Path) -> None:
     result, val = identify_recorded("ident-backlash", tmp_path)
+    assert result.config.max_effects >= 3
     assert [d.score.label for d in result.accepted] == ["backlash@carrier3(compliant)"]
+    truth = truth_effects(BAGS / "ident-backlash").backlash
+    assert truth is not None and truth.where == "carrier3_output"
     push = model_push(result)
     assert not any(s.startswith("backlash") for s in push.skipped), push.skipped
     terms = json.loads(push.parameters["effects"])
     (spline,) = [t for t in terms if t["kind"] == "spline_play"]
     assert spline["output"] == 1  # carrier 3 of the node's (sun_shaft, carrier3)
-    # the play the plant hides (0.02 rad), from the scorer's grid and the refit
-    assert spline["gap"] == pytest.approx(0.02, rel=0.3), spline
+    # the play the plant drew, from the scorer's grid (module docstring: why a factor 2)
+    std = result.final.fit.parameter_std()["gap_carrier3"]
+    assert std < 1e-6 * spline["gap"], (
+        "the refit now reports a usable std for the gap: bound it by 3 std", std)
+    assert 0.5 * truth.gap <= spline["gap"] <= 2.0 * truth.gap, (spline, truth)
 
     params = tmp_path / "pushed.yaml"
     params.write_text(yaml.safe_dump({"/**": {"ros__parameters": {

@@ -1,62 +1,276 @@
-"""Undeclared effects: the identifier finds what the plant hides, and nothing on a clean plant.
+"""Undeclared effects: the identifier finds what the plant hides, where it acts, with the plant's
+drawn values, over the description's whole loop; nothing on a clean plant.
 
 Estimation data: the committed recordings in ``bags/`` (made by the real chain: plant on a pty
--> driver -> recorder). Validation data: the same plant (its hidden effects read from the
-recording's ``truth.yaml`` - only tests read it, never the identifier) driven offline through the
-driver's supervisor with another experiment seed and noise seed (:mod:`recorded`). One
-augmentation round: the first-ranked candidates are refitted and the best passing one accepted.
+-> driver -> recorder, ``scripts/make_bags.sh``). Each effect plant drew its magnitudes from its
+seed (:mod:`dvt_driver.plant.hidden.draw`): the recording's ``truth.yaml`` holds the drawn
+values, which only the tests read, never the identifier. Validation data: the same drawn plant
+driven offline through the driver's supervisor with another experiment seed and noise seed
+(:mod:`recorded`). The loop runs the description's own ``max_effects`` (3 rounds): a second
+and third round must add nothing that is not in the plant.
+
+Checked for every plant: every effect accepted is one of the plant's, at the member (or input,
+or output) where the plant has it (no false or misplaced cause in any round); each is
+significant on validation (Diebold-Mariano); an effect of the plant that is not accepted was
+tried and lost only for power (it lowered the validation error, but not significantly at the
+description's alpha on these 33 s: a drawn magnitude can be small); the plant's drawn values
+are recovered for what was accepted. Tolerance rule: ``|estimate - truth| <= 3 std``, ``std``
+the reported standard deviation (:meth:`OEFit.parameter_std`, the HAC sandwich covariance of the
+output-error fit). Where the identifier's law is not the plant's, or the report has no usable
+std, each check states its bound and why (delay: half a sample; engagement dead time: between
+the plant's squeeze-film time and the middle of its rise; backlash: a factor 2, the scan grid's
+resolution).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from recorded import identify_recorded
+from recorded import BAGS, PLANT_MEMBER, identify_recorded, truth_effects, within
 
+from dvt_driver.plant.hidden import HiddenEffects
+from dvt_identify.effects.brakes import EngagementDeadTime
 from dvt_identify.loop import IdentificationResult
 
 pytestmark = pytest.mark.slow
 
+SAMPLE_PERIOD = 1e-3
+"""Sample period of the identification recordings [s]."""
 
-def _identify(name: str, tmp_path: Path) -> IdentificationResult:
-    return identify_recorded(name, tmp_path)[0]
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory: pytest.TempPathFactory
+            ) -> dict[str, tuple[IdentificationResult, HiddenEffects]]:
+    """Identification result and drawn truth per recording (made lazily, once per module)."""
+    return {}
+
+
+def _identify(results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+              tmp_path_factory: pytest.TempPathFactory, bag: str
+              ) -> tuple[IdentificationResult, HiddenEffects]:
+    if bag not in results:
+        r, _ = identify_recorded(bag, tmp_path_factory.mktemp(bag))
+        assert r.config.max_effects >= 3
+        results[bag] = (r, truth_effects(BAGS / bag))
+    return results[bag]
 
 
 def test_clean_plant_accepts_nothing(tmp_path: Path) -> None:
-    r = _identify("ident-none-1", tmp_path)
+    """A clean plant: nothing accepted in any of the 3 rounds; the baseline fits."""
+    r, _ = identify_recorded("ident-none-1", tmp_path)
+    assert r.config.max_effects >= 3
     assert r.accepted == []
     assert r.final is r.baseline
     # the baseline is already good on clean data: the physics structure is right
     assert min(r.baseline.val.fit_percent) > 96.0
 
 
-@pytest.mark.parametrize(("bag", "expected"), [
-    ("ident-coulomb", {"coulomb_friction"}),
-    # the plant's Stribeck curve (static + Coulomb + regularised sign) has a form no candidate
-    # has: a friction term on the right member must be found
-    ("ident-stribeck", {"coulomb_friction", "stribeck_friction"}),
-    ("ident-delay", {"measurement_delay"}),
-    ("ident-windage", {"windage"}),
+# -- where each plant's effect acts, in the identifier's labels ----------------------------------
+
+def _coulomb(t: HiddenEffects) -> set[str]:
+    return {f"coulomb_friction@{PLANT_MEMBER[m]}" for m in t.coulomb}
+
+
+def _windage(t: HiddenEffects) -> set[str]:
+    return {f"windage@{PLANT_MEMBER[m]}" for m in t.windage}
+
+
+def _delay(t: HiddenEffects) -> set[str]:
+    # the plant delays both speed measurements
+    return {"measurement_delay@sun_shaft", "measurement_delay@carrier3"}
+
+
+def _backlash(t: HiddenEffects) -> set[str]:
+    assert t.backlash is not None and t.backlash.where == "carrier3_output"
+    return {"backlash@carrier3(compliant)"}
+
+
+def _wet_brake(t: HiddenEffects) -> set[str]:
+    return {"brake_engagement@brakes(dead_time)"}
+
+
+EXPECTED: dict[str, Callable[[HiddenEffects], set[str]]] = {
+    "ident-coulomb": _coulomb,
+    "ident-windage": _windage,
+    "ident-delay": _delay,
     # play in a compliant spline to a load behind the carrier-3 tachometer: the load's
     # impacts make the measured speed a staircase only the compliant play explains
-    ("ident-backlash", {"backlash"}),
+    "ident-backlash": _backlash,
     # wet bands (shift-rich run): no torque while the oil film is squeezed out, then an
     # S-shaped rise; one engagement dead time shared by the three bands explains it
-    ("ident-wet_brake", {"brake_engagement"}),
-])
-def test_hidden_effect_is_ranked_first_and_accepted(bag: str, expected: set[str],
-                                                   tmp_path: Path) -> None:
-    r = _identify(bag, tmp_path)
+    "ident-wet_brake": _wet_brake,
+}
+
+
+def _stribeck_where(r: IdentificationResult, t: HiddenEffects) -> None:
+    """The plant's Stribeck curve (static + Coulomb + regularised sign) has a form no
+    candidate has: every accepted effect is a dry friction (Coulomb or Stribeck) on a member
+    where the plant has its curve, and every such member gets one."""
+    members = {PLANT_MEMBER[m] for m in t.stribeck}
+    got = [(d.score.effect.name, d.score.effect.where) for d in r.accepted]
+    assert all(n in ("coulomb_friction", "stribeck_friction") and w in members
+               for n, w in got), got
+    assert {w for _, w in got} == members, got
+
+
+@pytest.mark.parametrize("bag", [*EXPECTED, "ident-stribeck"])
+def test_hidden_effect_is_found_where_it_acts(
+        bag: str, results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Round 1 ranks a cause of the plant's effect first and accepts one; after 3 rounds every
+    accepted effect is the plant's, where the plant has it (member, input or output), accepted
+    by the validation test (Diebold-Mariano, HAC variance) with its evidence; an effect of the
+    plant left out was tried and lowered the validation error, only not significantly."""
+    r, truth = _identify(results, tmp_path_factory, bag)
+    assert truth.draw is not None and not truth.draw["fixed"], "not a drawn plant"
     assert r.rounds, "no scoring round ran"
-    first = r.rounds[0][0]
-    assert first.effect.name in expected, [s.label for s in r.rounds[0][:4]]
-    accepted = r.accepted
-    assert accepted and accepted[0].score.effect.name in expected
+    labels = [d.score.label for d in r.accepted]
+    if bag == "ident-stribeck":
+        assert r.rounds[0][0].effect.name in ("coulomb_friction", "stribeck_friction")
+        _stribeck_where(r, truth)
+    else:
+        expected = EXPECTED[bag](truth)
+        assert r.rounds[0][0].label in expected, [s.label for s in r.rounds[0][:4]]
+        assert labels and set(labels) <= expected, [d.as_dict() for d in r.decisions]
+        assert r.accepted[0].round == 1
+        for missed in sorted(expected - set(labels)):
+            # its last try (an earlier one may have passed and lost to a larger cause)
+            tried = [d for d in r.decisions if d.score.label == missed]
+            assert tried, f"{missed}: never tried"
+            v = tried[-1].validation
+            assert v is not None and v.gain > 0 and not v.p_value < r.config.alpha, (
+                f"{missed}: lost for another reason than power", tried[-1].as_dict())
+            print(f"\n{bag}: {missed} not accepted (power): validation p = {v.p_value:.3g}")
     gain = r.final.val.mean_fit - r.baseline.val.mean_fit
     assert gain > 0.0, (r.baseline.val.fit_percent, r.final.val.fit_percent)
-    # accepted by the validation test (Diebold-Mariano, HAC variance), with its evidence
-    dm = accepted[0].validation
-    assert dm is not None and dm.gain > 0 and dm.p_value < r.config.alpha, dm
+    for d in r.accepted:
+        dm = d.validation
+        assert dm is not None and dm.gain > 0 and dm.p_value < r.config.alpha, d.as_dict()
     assert r.drift is not None
     assert r.drift.drifting == [], r.drift.summary()
+
+
+# -- the drawn values ----------------------------------------------------------------------------
+
+def _estimates(r: IdentificationResult) -> tuple[dict[str, float], dict[str, float]]:
+    return r.final.parameters(), r.final.fit.parameter_std()
+
+
+def test_coulomb_levels_are_the_drawn_ones(
+        results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Each accepted member's Coulomb level ``Fc`` within 3 reported std of the drawn level."""
+    r, truth = _identify(results, tmp_path_factory, "ident-coulomb")
+    p, sd = _estimates(r)
+    names = [f"Fc_{PLANT_MEMBER[m]}" for m in truth.coulomb]
+    assert any(n in p for n in names), p
+    for member, fc in truth.coulomb.items():
+        name = f"Fc_{PLANT_MEMBER[member]}"
+        if name in p:
+            within(name, p[name], sd[name], fc)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "identifier: on ident-windage (draw 15: Cw sun 5.53e-6, carrier3 8.47e-5 N m s^2) the "
+    "carrier-3 windage loses for power in round 2 (validation p = 0.025 > 0.01) and the sun's "
+    "absorbs it: Cw_sun_shaft 6.81e-6 +- 9.6e-8, 13 std off (offline run of the same plant, "
+    "both accepted: 5.27e-6 +- 6.3e-8, 4.2 std off); the reported std does not cover the "
+    "windage's trade-off with D and with the other member's drag"))
+def test_windage_coefficients_are_the_drawn_ones(
+        results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Each accepted member's quadratic drag ``Cw`` within 3 reported std of the drawn
+    coefficient (a member whose windage lost for power has no estimate)."""
+    r, truth = _identify(results, tmp_path_factory, "ident-windage")
+    p, sd = _estimates(r)
+    names = [f"Cw_{PLANT_MEMBER[m]}" for m in truth.windage]
+    assert any(n in p for n in names), p
+    for member, cw in truth.windage.items():
+        name = f"Cw_{PLANT_MEMBER[member]}"
+        if name in p:
+            within(name, p[name], sd[name], cw)
+
+
+def test_stribeck_levels_are_the_drawn_ones(
+        results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The sliding level: a Coulomb ``Fc`` accepted on a member within 3 reported std of the
+    drawn ``Fc`` (the curve's level above its Stribeck speed); a Stribeck term accepted on a
+    member: its break-away excess ``Fs`` within 3 reported std of the drawn ``Fs - Fc`` (the
+    identifier's Stribeck term is the excess over the Coulomb level)."""
+    r, truth = _identify(results, tmp_path_factory, "ident-stribeck")
+    p, sd = _estimates(r)
+    checked = 0
+    for member, curve in truth.stribeck.items():
+        where = PLANT_MEMBER[member]
+        if f"Fc_{where}" in p:
+            within(f"Fc_{where}", p[f"Fc_{where}"], sd[f"Fc_{where}"], curve.Fc)
+            checked += 1
+        if f"Fs_{where}" in p:
+            within(f"Fs_{where}", p[f"Fs_{where}"], sd[f"Fs_{where}"], curve.Fs - curve.Fc)
+            checked += 1
+    assert checked >= len(truth.stribeck)
+
+
+def test_measurement_delays_are_the_drawn_one(
+        results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Each speed's delay is the drawn delay plus its sensor's timing against the model, within
+    3 std or a quarter sample (0.25 ms), whichever is wider. The model holds the measured
+    current over the sample that follows it (the plant's current moves during it), so the
+    plant's response leads the model's by half a sample: the tachometer (carrier 3, read at the
+    sample) shows ``delay - T/2``; the sun's speed (encoder counts over the last period, centred
+    half a sample back) shows ``delay``. A quarter sample: the chain's stamp mapping jitters
+    by a fraction of a sample (0.1 ms measured), which the reported std (noise only) omits."""
+    r, truth = _identify(results, tmp_path_factory, "ident-delay")
+    p, sd = _estimates(r)
+    assert "delay_sun_shaft" in p or "delay_carrier3" in p, p
+    timing = {"sun_shaft": 0.0, "carrier3": -0.5 * SAMPLE_PERIOD}
+    for where, offset in timing.items():
+        name = f"delay_{where}"
+        if name not in p:
+            continue
+        bound = max(3.0, 0.25 * SAMPLE_PERIOD / sd[name])
+        within(name, p[name], sd[name], truth.measurement_delay + offset, bound=bound)
+
+
+def test_engagement_dead_time_matches_the_drawn_wet_bands(
+        results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The one dead time acts on every band the plant's wet shape is on (all three), and lies
+    between the drawn squeeze-film time and the middle of the drawn asperity rise
+    (``viscous_time <= td <= viscous_time + asperity_time / 2``). Why a range and not 3 std:
+    the identifier's law (nothing for ``td``, then the first-order lag) is not the plant's
+    (film shear for ``viscous_time``, then a smoothstep over ``asperity_time``); a dead time
+    placed before the squeeze-film end or after the rise's middle would be a wrong engagement."""
+    r, truth = _identify(results, tmp_path_factory, "ident-wet_brake")
+    (d,) = r.accepted
+    eff = d.score.effect
+    assert isinstance(eff, EngagementDeadTime)
+    names = r.description.inputs
+    assert {names[i].name for i in eff.indices} == {f"brake{k}" for k in truth.wet_brake}
+    shapes = set(truth.wet_brake.values())
+    assert len(shapes) == 1, "the bands' shapes differ: one dead time cannot be all of them"
+    (shape,) = shapes
+    td = r.final.parameters()["td_brakes"]
+    assert shape.viscous_time <= td <= shape.viscous_time + 0.5 * shape.asperity_time, (
+        td, shape)
+
+
+def test_backlash_gap_is_the_drawn_one_within_the_scan_resolution(
+        results: dict[str, tuple[IdentificationResult, HiddenEffects]],
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The play in the spline within a factor 2 of the drawn gap. Why not 3 std: the refit of
+    the compliant play (an impact oscillator) does not move the gap from the scorer's grid
+    value (gap_scan 0.005, 0.01, 0.02, 0.04 rad: a factor 2 apart) and reports a degenerate
+    std (about 1e-9 rad: a zero finite-difference Jacobian, not an uncertainty), which this
+    test checks so that it fails once the refit reports a real one (then: 3 std)."""
+    r, truth = _identify(results, tmp_path_factory, "ident-backlash")
+    assert truth.backlash is not None
+    p, sd = _estimates(r)
+    gap = p["gap_carrier3"]
+    assert sd["gap_carrier3"] < 1e-6 * gap, (
+        "the refit now reports a usable std for the gap: test it with 3 std", sd)
+    assert 0.5 * truth.backlash.gap <= gap <= 2.0 * truth.backlash.gap, (gap, truth.backlash)

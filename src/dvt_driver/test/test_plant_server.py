@@ -36,6 +36,7 @@ from dvt_driver.link.protocol import (
     encode,
 )
 from dvt_driver.link.serial_link import LinkState, SerialLink
+from dvt_driver.plant.hidden import load_hidden
 
 WAIT = 10.0  # s: upper bound of any single wait (tests poll with a deadline)
 
@@ -285,7 +286,10 @@ def test_scheduled_faults_truth_file_and_duration(tmp_path: Path,
     assert 700 <= stats["samples_produced"] <= 900
     doc = yaml.safe_load(truth.read_text())
     assert doc["effects"] == ["windage"]
-    assert doc["hidden"] == {"windage": {"sun": 4.0e-6, "carrier3": 1.0e-4}}
+    # the preset's magnitudes drawn from --seed, the draw recorded
+    assert doc["hidden"] == load_hidden("windage", draw=5).to_mapping()
+    assert doc["hidden"] != load_hidden("windage").to_mapping()
+    assert doc["hidden_draw"]["seed"] == 5 and not doc["hidden_draw"]["fixed"]
     assert doc["plant"]["seed"] == 5 and doc["plant"]["sample_period_us"] == 1000
 
 

@@ -23,7 +23,10 @@ transmission physics in real time:
 ``--protocol-version 1`` makes it an old controller (speeds only: it NACKs HELLO(2), answers
 HELLO(1), sends SAMPLE frames without counts); the default speaks versions 1 and 2.
 ``--load none|arm|arm-payload|<load.yaml>`` puts a declared joint load on carrier 3
-(:mod:`dvt_model.load`; written into ``truth.yaml`` under ``plant.load``).
+(:mod:`dvt_model.load`; written into ``truth.yaml`` under ``plant.load``). A ``--hidden``
+preset's distributions (magnitudes, reductions, orders) are drawn from ``--seed`` (a random
+draw without it; :mod:`dvt_driver.plant.hidden.draw`), the values and the draw written into
+``truth.yaml`` (``hidden``, ``hidden_draw``); ``--hidden-fixed`` takes the preset's nominal plant.
 
 Fault injection (for tests), on SAMPLE frames only so that a session can always be
 established: ``--fault-corrupt P`` flips one byte of a frame (never into 0x00) with probability
@@ -90,7 +93,13 @@ from dvt_driver.plant.core import (
     PlantSim,
     SafetyLimits,
 )
-from dvt_driver.plant.hidden import Change, changes_from_spec, load_hidden, parse_change
+from dvt_driver.plant.hidden import (
+    Change,
+    changes_from_spec,
+    load_hidden,
+    parse_change,
+    random_draw,
+)
 from dvt_model.errors import DvtModelError
 from dvt_model.load import available_loads, load_joint_load
 from dvt_model.params import load_parameters
@@ -502,7 +511,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", default="none",
                    help="hidden effects: preset name (none, coulomb, stribeck, windage, backlash, "
                         "delay, wet_brake, gravity_arm, mesh_ripple, position_friction) or YAML "
-                        "path (default none)")
+                        "path (default none); a preset's distributions are drawn from --seed "
+                        "(a random draw without it), the draw written into --truth-out")
+    p.add_argument("--hidden-fixed", action="store_true",
+                   help="use the preset's fixed draw (each distribution's 'fixed' value, the "
+                        "nominal plant) instead of drawing it from the seed")
     p.add_argument("--load", default="none",
                    help=f"declared joint load on carrier 3: {' | '.join(available_loads())} or a "
                         "load YAML path (dvt_model.load; default none)")
@@ -579,7 +592,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         params = load_parameters(args.params)
-        hidden = load_hidden(args.hidden)
+        draw = None if args.hidden_fixed else (
+            args.seed if args.seed is not None else random_draw())
+        hidden = load_hidden(args.hidden, draw=draw)
         extra_changes = [c for text in args.change_at for c in parse_change_at(text)]
         load = load_joint_load(args.load)
         if not (math.isfinite(args.watchdog_ms) and args.watchdog_ms >= 0):

@@ -145,6 +145,8 @@ class CompliantOutputBacklash(Effect):
     def build(cls, ctx: BuildContext) -> Effect:
         su, sfx = ctx.speed_unit, ctx.suffix
         unit = su.split("/")[0] if su else ""
+        # starts only (generic: a steel spline to a small load, lightly damped): the scorer
+        # scans wn_scan x zeta_scan x gap_scan (variants) and the refit starts from the best
         wn0 = ctx.number("wn", 400.0)
         z0 = ctx.number("zeta", 0.15)
         probe = ctx.number("probe_gap", 0.01)

@@ -123,9 +123,12 @@ class CoulombFriction(Effect):
 class StribeckFriction(Effect):
     """Stribeck term ``-Fs exp(-(s/vs)^2) sign(s)``; ``Fs`` adds to the holding capacity at rest.
 
-    Parameters ``Fs`` (>= 0, force unit) and ``vs`` (> 0, member speed unit; scanned; option
-    ``vs`` is its start). Option ``eps`` (> 0): the sign smoothed to ``tanh(s / eps)``, no
-    break-away at rest (module docstring). Model node: a ``stribeck`` term.
+    Parameters ``Fs`` (>= 0, force unit) and ``vs`` (> 0, member speed unit). ``vs`` has no
+    prior: the scorer scans it at fractions of the member's measured speed spread
+    (:meth:`variants`, a scale from the data) and the refit starts from the best; option ``vs``
+    (default 1 speed unit, a placeholder the scan replaces) is only where it is held before
+    the scan. Option ``eps`` (> 0): the sign smoothed to ``tanh(s / eps)``, no break-away at
+    rest (module docstring). Model node: a ``stribeck`` term.
     """
 
     name = "stribeck_friction"

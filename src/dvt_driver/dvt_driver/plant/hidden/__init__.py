@@ -36,6 +36,15 @@ YAML schema (units SI; every top-level key optional)::
     position_friction:       # a friction bump at one angle of a member (a tight spot)
       carrier3: {amplitude: 0.3, center: 1.0, width: 0.3}   # [N m], [rad], [rad]
 
+In a preset any number may instead be a distribution, drawn per plant seed
+(:mod:`~dvt_driver.plant.hidden.draw`: ``{uniform: [lo, hi], fixed: v}``, ``{log_uniform: [lo,
+hi], fixed: v}``, ``{choice: [v1, v2, ...], fixed: v}``): :func:`load_hidden` with ``draw=seed``
+draws them, with ``draw=None`` takes each ``fixed`` value (the preset's nominal plant). The
+bundled effect presets draw their magnitudes, the gravity arm's reduction and the mesh
+ripple's stage (hence its order), so a test compares what the identifier finds with the drawn
+truth in ``truth.yaml`` (``hidden``; the draw under ``hidden_draw``), not with a value that
+could sit in the identifier's priors. The changing plants (``changes``) are fixed schedules.
+
 A plant that changes while it runs (``changes``, plus the base ``damping_scale``)::
 
     damping_scale: 1.0       # optional: the transmission's viscous damping D times this (>= 0)
@@ -98,12 +107,13 @@ Friction on a member acts on that member's speed ``v = a . omega`` (``a`` its li
 hump at low speed.
 
 Presets (``config/*.yaml`` in this package): ``none``, ``coulomb``, ``stribeck``, ``windage``,
-``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``,
-and the changing plants ``wear``, ``oil_warmup``, ``payload_added``, ``friction_step``
-(:func:`available_presets`, :func:`load_hidden`).
+``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``
+(drawn per seed), and the changing plants ``wear``, ``oil_warmup``, ``payload_added``,
+``friction_step`` (:func:`available_presets`, :func:`load_hidden`).
 
 Modules: :mod:`~dvt_driver.plant.hidden.effects` (the effects as data, the schedule,
-``truth.yaml``), :mod:`~dvt_driver.plant.hidden.parse` (presets, YAML, runtime changes); the
+``truth.yaml``), :mod:`~dvt_driver.plant.hidden.parse` (presets, YAML, runtime changes),
+:mod:`~dvt_driver.plant.hidden.draw` (a preset's distributions drawn from a seed); the
 forces the plant computes from them are in :mod:`dvt_driver.plant.physics`. Every public name
 is importable from this package.
 
@@ -111,6 +121,7 @@ Errors name the source, the key path and the value, e.g.
 ``coulomb.yaml: coulomb.sunn: unknown member (expected one of [...])``.
 """
 
+from dvt_driver.plant.hidden.draw import DISTRIBUTIONS, is_distribution, random_draw, resolve
 from dvt_driver.plant.hidden.effects import (
     BACKLASH_LOCATIONS,
     DEFAULT_FRICTION_VELOCITY,
@@ -137,6 +148,7 @@ from dvt_driver.plant.hidden.parse import (
 __all__ = [
     "BACKLASH_LOCATIONS",
     "DEFAULT_FRICTION_VELOCITY",
+    "DISTRIBUTIONS",
     "MAX_DAMPING_SCALE",
     "MEMBERS",
     "Backlash",
@@ -149,8 +161,11 @@ __all__ = [
     "WetBrake",
     "available_presets",
     "changes_from_spec",
+    "is_distribution",
     "load_hidden",
     "parse_change",
     "parse_hidden",
+    "random_draw",
+    "resolve",
     "scheduled_values",
 ]

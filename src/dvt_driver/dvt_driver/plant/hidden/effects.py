@@ -284,6 +284,9 @@ class HiddenEffects:
             parameter set says), >= 0.
         changes: the schedule of :class:`Change` (empty: the plant does not change).
         source: where it was loaded from (file name or preset), for messages.
+        draw: how a preset's distributions were drawn (:func:`~.draw.draw_record`: seed,
+            fixed, distributions by key path), ``None`` for a preset without one; written
+            into ``truth.yaml`` as ``hidden_draw``.
     """
 
     coulomb: dict[str, float] = field(default_factory=dict)
@@ -299,6 +302,7 @@ class HiddenEffects:
     damping_scale: float = 1.0
     changes: tuple[Change, ...] = ()
     source: str = "<default>"
+    draw: Mapping[str, Any] | None = None
 
     @property
     def is_clean(self) -> bool:
@@ -382,7 +386,9 @@ class HiddenEffects:
     def to_truth_yaml(self, *, params_name: str, seed: int | None, sample_period_us: int,
                       extra: Mapping[str, Any] | None = None,
                       applied: list[dict[str, Any]] | None = None) -> str:
-        """Text of ``truth.yaml``: the hidden effects plus what else defines the plant.
+        """Text of ``truth.yaml``: the hidden effects plus what else defines the plant
+        (``hidden``: the values the plant runs, drawn ones included; ``hidden_draw``: how a
+        preset's distributions were drawn, when it has any).
 
         Args:
             params_name: the transmission parameter set the plant runs (name or path).
@@ -397,6 +403,7 @@ class HiddenEffects:
             "effects": self.effect_names(),
             "hidden": self.to_mapping(),
             "hidden_source": self.source,
+            **({"hidden_draw": dict(self.draw)} if self.draw is not None else {}),
             "plant": {"params": params_name, "seed": seed,
                       "sample_period_us": int(sample_period_us), **dict(extra or {})},
         }

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from dvt_driver.errors import HiddenEffectsError
+from dvt_driver.plant.hidden.draw import draw_record, resolve
 from dvt_driver.plant.hidden.effects import (
     BACKLASH_LOCATIONS,
     DEFAULT_FRICTION_VELOCITY,
@@ -48,8 +49,15 @@ def available_presets() -> list[str]:
     return bundled_names("dvt_driver.plant", _PRESET_DIR)
 
 
-def load_hidden(name_or_path: str | Path) -> HiddenEffects:
-    """Load a preset by name (``coulomb``) or a YAML file by path.
+def load_hidden(name_or_path: str | Path, draw: int | None = None) -> HiddenEffects:
+    """Load a preset by name (``coulomb``) or a YAML file by path, drawing its distributions.
+
+    Args:
+        name_or_path: preset name or YAML path.
+        draw: the seed of the draw of the preset's distributions (an integer >= 0; the plant
+            passes its ``--seed``), or ``None`` for the fixed draw (each distribution's
+            ``fixed`` value: the preset's nominal plant). See :mod:`~.draw`; the result's
+            ``draw`` records the seed and the distributions for ``truth.yaml``.
 
     Raises:
         HiddenEffectsError: unknown preset, unreadable file, invalid YAML or content.
@@ -57,7 +65,9 @@ def load_hidden(name_or_path: str | Path) -> HiddenEffects:
     data, source = read_yaml_setting(name_or_path, what="hidden-effects preset",
                                      error=HiddenEffectsError, package="dvt_driver.plant",
                                      directory=_PRESET_DIR)
-    return parse_hidden(data, source=source)
+    values, distributions = resolve(data, draw, source)
+    return dataclasses.replace(parse_hidden(values, source=source),
+                               draw=draw_record(draw, distributions))
 
 
 def _num(value: Any, where: str, *, lo: float | None = None, lo_open: bool = False,
@@ -114,7 +124,8 @@ def changes_from_spec(spec: str, at: float) -> list[Change]:
     hidden-effects YAML path. If it has ``changes``, those, shifted in time so that the first
     starts at ``at`` [s of plant time] (their spacing kept); else one step at ``at`` to its
     ``coulomb``, ``windage`` and ``damping_scale`` (e.g. ``40:coulomb`` on a clean plant: a
-    friction step at 40 s).
+    friction step at 40 s). A preset's distributions take their fixed draw (the nominal
+    values): a runtime change is a stated step, not a draw.
 
     Raises:
         HiddenEffectsError: ``spec`` does not load, or changes nothing that can change.
