@@ -164,8 +164,7 @@ def compare_records(fit: OEFit, est: Sequence[Segment], test: Sequence[Segment],
     Raises:
         DataError: no segments, or no input the structure drives.
     """
-    seen: set[int] = set()
-    est = [s for s in est if not (id(s) in seen or seen.add(id(s)))]  # a segment once
+    est = list({id(s): s for s in est}.values())  # a segment once, first-seen order
     be = record_bias(fit, est)
     bt = record_bias(fit, test)
     d = bt.value - be.value
