@@ -6,7 +6,8 @@ machine's core count and the wall time, beside the figures the command printed. 
 
     scripts/results.sh NAME [NAME ...]     # or: .venv/bin/python scripts/results.py NAME
 
-Names: ``emps`` (examples/emps/run.sh), ``identify`` (``dvt-bench identify --json``),
+Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.json),
+``identify`` (``dvt-bench identify --json``),
 ``hours`` (``dvt-bench identify --hours 1 --json``), ``loop`` (``dvt-bench loop
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
 randomised clean plants of tests/test_false_effects.py), ``all``.
@@ -65,6 +66,16 @@ def emps() -> tuple[list[str], dict[str, Any]]:
     return [*cmd[:2], "OUTDIR"], figures
 
 
+def demo() -> tuple[list[str], dict[str, Any]]:
+    with tempfile.TemporaryDirectory() as d:
+        cmd = ["bash", "scripts/demo.sh", d]
+        r = subprocess.run(cmd, cwd=ROOT, text=True, capture_output=True, check=False)
+        if r.returncode != 0:
+            raise SystemExit(f"results: demo failed:\n{r.stderr[-2000:]}")
+        summary = json.loads((Path(d) / "summary.json").read_text())
+    return [*cmd[:2], "OUTDIR"], summary
+
+
 def _bench(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
     def run() -> tuple[list[str], dict[str, Any]]:
         cmd = [str(BIN / "dvt-bench"), *args]
@@ -93,6 +104,7 @@ def false_effects() -> tuple[list[str], dict[str, Any]]:
 
 NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "emps": emps,
+    "demo": demo,
     "identify": _bench("identify", "--json"),
     "hours": _bench("identify", "--hours", "1", "--json"),
     "loop": _bench("loop", "--with-identifier", "--json"),

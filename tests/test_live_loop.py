@@ -27,6 +27,10 @@ A push that then makes the live residual worse is rolled back: unit tests
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -63,6 +67,9 @@ LEAD_S = 1.5
 DETECTOR_LEARN_S = 8.0
 """The model node's reference window [s] (default 20): learned on the 14 s of neutral PRBS."""
 SUPERVISOR = {"min_post_change_s": 16.0, "settle_s": 1.0, "validation_s": 5.0,
+              # one refit per episode (the first stage, the structure held at the model in
+              # use): its decision is the outcome; the second stage has its unit tests
+              "full_post_change_s": 0.0,
               # watch and baseline span a whole repeated run: comparable operating points
               "watch_s": 15.0, "watch_settle_s": 1.0, "baseline_s": 15.0,
               "min_watch_samples": 1000, "fit_timeout_s": 90.0, "push_timeout_s": 40.0}
@@ -159,7 +166,9 @@ class _Loop:
                                    st.message, {kv.key: kv.value for kv in st.values}))
 
 
-def _start(procs: Any, tmp: Path, min_gain: float, detector: bool = False) -> None:
+def _start(procs: Any, tmp: Path, min_gain: float, detector: bool = False) -> Any:
+    """Start the model node, the ring recorder and the identifier; returns the identifier's
+    process."""
     procs.start("dvt_model_node", "--ros-args", "-p", "params:=physical",
                 "-p", f"detector.enabled:={'true' if detector else 'false'}",
                 "-p", f"detector.learn_s:={DETECTOR_LEARN_S}",
@@ -173,7 +182,7 @@ def _start(procs: Any, tmp: Path, min_gain: float, detector: bool = False) -> No
             "-p", f"supervisor.fit_decimate:={10 // KEEP_EVERY}"]  # fit at 100 Hz: bounded
     for k, v in SUPERVISOR.items():
         args += ["-p", f"supervisor.{k}:={v}"]
-    procs.start("dvt_identify_node", "--ros-args", *args)
+    return procs.start("dvt_identify_node", "--ros-args", *args)
 
 
 def _episode(procs: Any, loop: _Loop, tmp: Path, hidden: list[str], repeat: int,
@@ -325,3 +334,44 @@ def test_false_alarm_on_a_good_model_is_not_pushed(procs, rclpy_context, tmp_pat
     assert list(value[0].double_array_value) == [] and value[1].string_value in ("", "[]")
     assert any("not_better" in m for _, m, _ in loop.steps)
     print(f"\nfalse alarm: test {rep['test']}; timings {rep['timings']}")
+
+
+def test_crashed_refit_is_the_episodes_outcome_and_the_node_lives_on(procs, rclpy_context,
+                                                                     tmp_path):
+    """The refit runs in a process of its own: killed (SIGKILL, as the OOM killer would) while
+    it fits, the episode ends with the outcome ``refit_crashed`` naming the signal, the
+    identifier keeps running and warms a new refit process up for the next episode."""
+    loop = _Loop(rclpy_context)
+    ident = _start(procs, tmp_path, min_gain=0.25)
+    killed: list[int] = []
+    stop = threading.Event()
+
+    def kill_the_refit() -> None:  # the refit's pid, from the identifier's own log line
+        pattern = re.compile(r"handed to the refit process \(pid (\d+)\)")
+        while not stop.is_set() and not killed:
+            m = pattern.search(procs.log(ident))
+            if m:
+                killed.append(int(m.group(1)))
+                os.kill(killed[0], signal.SIGKILL)
+            time.sleep(0.02)
+
+    killer = threading.Thread(target=kill_the_refit, daemon=True)
+    killer.start()
+    try:
+        rep, _ = _episode(procs, loop, tmp_path, ["none", "coulomb", "coulomb"], repeat=4,
+                          timeout=EPISODE_S)
+    finally:
+        stop.set()
+        killer.join(timeout=5.0)
+    assert killed, "the identifier never handed a refit to its process"
+    assert rep["outcome"] == "refit_crashed", (rep["outcome"], rep["reason"])
+    assert "SIGKILL" in rep["reason"] and f"pid {killed[0]}" in rep["reason"], rep["reason"]
+    assert not rep["pushed"] and not rep["rolled_back"]
+    assert ident.poll() is None, procs.log(ident)[-3000:]
+    assert any(lvl == 2 and "refit_crashed" in m for lvl, m, _ in loop.steps), loop.steps[-3:]
+    # a new refit process, warm for the next episode, and the killed one reaped
+    loop.spin_until(lambda: any(v.get("refit_processes_started") == "2"
+                                and v.get("refit_crashes") == "1" for _, _, v in loop.steps),
+                    10.0, "the new refit process on /diagnostics")
+    assert not Path(f"/proc/{killed[0]}").exists(), "the killed refit process was not reaped"
+    print(f"\nrefit process {killed[0]} killed: {rep['reason']}")

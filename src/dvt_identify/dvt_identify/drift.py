@@ -39,8 +39,12 @@ from scipy.optimize import least_squares
 
 from dvt_identify.data import Segment
 from dvt_identify.fit import OEFit
+from dvt_identify.parallel import fork_map
+from dvt_identify.sensitivity import simulate_sens_states
+from dvt_identify.simulation import DivergedError
+from dvt_identify.streamls import Block, Factored, dense, dense_ok
 from dvt_identify.structures import PENALTY
-from dvt_identify.uncertainty import sandwich_covariance
+from dvt_identify.uncertainty import sandwich_by_segment, sandwich_covariance
 
 Array = NDArray[np.float64]
 MIN_PIECE = 100
@@ -153,6 +157,36 @@ def _simulate_windows(fit: OEFit, i: int, values: Array, seg: Segment, x0: Array
     return np.vstack(out)
 
 
+def _windows_jacobian(fit: OEFit, i: int, values: Array, seg: Segment, x0: Array,
+                      edges: Array) -> Array:
+    """``d (simulated outputs) / d (values, x0)`` of :func:`_simulate_windows`, shape
+    (N, ny, K + nx): each window's simulation differentiated by its own value and its initial
+    state (:func:`~dvt_identify.sensitivity.simulate_sens_states`), chained through the state
+    carried across the window edges."""
+    m = fit.model
+    K, nx = len(edges) - 1, m.nx
+    out = []
+    x = np.asarray(x0, float)
+    T = np.zeros((nx, K + nx))  # d (carried state) / d (values, x0)
+    T[:, K:] = np.eye(nx)
+    th = fit.theta_.copy()
+    for k in range(K):
+        a, b = int(edges[k]), int(edges[k + 1])
+        stop = min(b + 1, seg.n)
+        th[i] = values[k]
+        with np.errstate(all="ignore"):
+            states, tstates, ys, S = simulate_sens_states(m, th, seg.rows(a, stop), x, [i])
+        Jp = S[:, :, 1:] @ T
+        Jp[:, :, k] += S[:, :, 0]
+        out.append(Jp[: b - a])
+        # the carried state (the outputs' last sample for C = I, as _simulate_windows)
+        carried, tc = (ys, S) if m.C is None else (states, tstates)
+        Tn = tc[-1, :, 1:] @ T
+        Tn[:, k] += tc[-1, :, 0]
+        x, T = carried[-1], Tn
+    return np.concatenate(out)
+
+
 def _refit_one(fit: OEFit, i: int, segs: Sequence[Segment], windows: int
                ) -> tuple[Array, Array]:
     """Parameter ``i`` refitted per window (everything else at the fit, initial states
@@ -175,15 +209,46 @@ def _refit_one(fit: OEFit, i: int, segs: Sequence[Segment], windows: int
                 parts.append(np.full(seg.y.size, PENALTY))
         r = np.nan_to_num(np.concatenate(parts), nan=PENALTY, posinf=PENALTY, neginf=-PENALTY)
         return np.asarray(np.clip(r, -PENALTY, PENALTY))
+
+    q = windows + len(segs) * nx
+
+    def rows(z: Array, k: int) -> Block:
+        """Segment ``k``'s rows of the Jacobian over its unknowns (the window values and its
+        initial state) and of the residual (:data:`~dvt_identify.streamls.Block`)."""
+        seg = segs[k]
+        vals = z[:windows]
+        x0 = z[windows + k * nx: windows + (k + 1) * nx]
+        cols = np.concatenate([np.arange(windows), windows + k * nx + np.arange(nx)])
+        try:
+            S = _windows_jacobian(fit, i, vals, seg, x0, edges[k])
+            yh = _simulate_windows(fit, i, vals, seg, x0, edges[k])
+        except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError,
+                DivergedError):
+            return (np.zeros((seg.y.size, windows + nx)), np.full(seg.y.size, PENALTY),
+                    cols.astype(np.int64))
+        J = -(S / w[None, :, None]).reshape(seg.y.size, windows + nx)
+        r = np.nan_to_num(((seg.y - yh) / w).ravel(), nan=PENALTY, posinf=PENALTY,
+                          neginf=-PENALTY)
+        return (np.asarray(np.nan_to_num(J, nan=0.0, posinf=0.0, neginf=0.0)),
+                np.asarray(np.clip(r, -PENALTY, PENALTY)), cols.astype(np.int64))
+
+    def jac(z: Array) -> Array:
+        return np.vstack([dense(rows(z, k), q)[0] for k in range(len(segs))])
     v0 = float(np.clip(fit.theta_[i], spec.lower, spec.upper))
     z0 = np.concatenate([np.full(windows, v0), *fit.x0_[: len(segs)]])
     zlo = np.concatenate([np.full(windows, spec.lower), np.full(len(segs) * nx, -np.inf)])
     zhi = np.concatenate([np.full(windows, spec.upper), np.full(len(segs) * nx, np.inf)])
     if np.any(zlo >= zhi):
         return np.full(windows, v0), np.full(windows, np.inf)
-    r = least_squares(fun, z0, bounds=(zlo, zhi), x_scale="jac", method="trf",
-                      ftol=1e-8, xtol=1e-8, gtol=1e-8)
-    cov = sandwich_covariance(r.jac, r.fun, m.ny, [s.n for s in segs])
+    if dense_ok(sum(sg.y.size for sg in segs), q):
+        r = least_squares(fun, z0, jac=jac, bounds=(zlo, zhi), x_scale="jac", method="trf",
+                          ftol=1e-8, xtol=1e-8, gtol=1e-8)
+        cov = sandwich_covariance(r.jac, r.fun, m.ny, [s.n for s in segs])
+    else:  # a long recording: handed to the solver by its factor (dvt_identify.streamls)
+        fac = Factored(lambda z: (rows(z, k) for k in range(len(segs))), q)
+        r = least_squares(fac.residual, z0, jac=fac.jacobian, bounds=(zlo, zhi),
+                          x_scale="jac", method="trf", ftol=1e-8, xtol=1e-8, gtol=1e-8)
+        _, cov = sandwich_by_segment(lambda k: rows(r.x, k), [s.n for s in segs], m.ny, q)
     return np.asarray(r.x[:windows], float), np.asarray(cov.std[:windows], float)
 
 
@@ -213,7 +278,8 @@ def drift_check(fit: OEFit, segments: Sequence[Segment] | None = None, windows: 
         rep.skipped = (f"a segment is shorter than {windows} x {MIN_PIECE} samples (at the "
                        "fitting rate)")
         return rep
-    cols = [_refit_one(fit, int(i), segs, windows) for i in idx]
+    # one refit per parameter, shared between the cores (dvt_identify.parallel)
+    cols = fork_map(lambda i: _refit_one(fit, int(i), segs, windows), list(idx))
     e0 = _edges(segs[0], windows)
     times = [float(np.mean([0.5 * (sg.t[int(_edges(sg, windows)[k])]
                                    + sg.t[int(_edges(sg, windows)[k + 1]) - 1]) - sg.t[0]

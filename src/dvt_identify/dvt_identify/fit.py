@@ -1,8 +1,12 @@
 """The output-error fit: :class:`OEFit` minimises the simulation error of an
 :class:`~dvt_identify.simulation.OEModel` with ``scipy.optimize.least_squares`` (bounded
-``trf``), outputs weighted by ``1/std(y_j)``, each segment with its own estimated initial state,
-from several starts (equation-error/physics guess plus random perturbations; starts after the
-first are screened on decimated data and polished only when they beat the first).
+``trf``, the Jacobian from the simulation's forward sensitivities,
+:mod:`dvt_identify.sensitivity`; a problem whose Jacobian would be large is handed to the
+solver by its triangular factor built segment by segment, :mod:`dvt_identify.streamls`),
+outputs weighted by ``1/std(y_j)``, each segment with its own estimated initial state, from
+several starts (equation-error/physics guess plus random perturbations; starts after the first
+are screened on decimated data and polished only when they beat the first; the first start's
+run and the screens share the two cores).
 
 The start guard: the band gains start from a fit of each band's engagements
 (:meth:`OEFit.band_start`); of the guess and the extra starts the one that simulates best runs
@@ -24,8 +28,9 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -35,9 +40,12 @@ from scipy.optimize import least_squares
 from dvt_identify.data import Segment
 from dvt_identify.effects import BrakeEngagement, BrakeLockup
 from dvt_identify.errors import FitError
+from dvt_identify.parallel import fork_map
+from dvt_identify.sensitivity import simulate_sens
 from dvt_identify.simulation import DivergedError, OEModel, zoh_decimate
+from dvt_identify.streamls import Block, Factored, dense, dense_ok
 from dvt_identify.structures import PENALTY, initial_state
-from dvt_identify.uncertainty import sandwich_covariance
+from dvt_identify.uncertainty import sandwich_by_segment, sandwich_covariance
 
 Array = NDArray[np.float64]
 Progress = Callable[[str], None]
@@ -158,6 +166,28 @@ def _engagement_windows(segments: Sequence[Segment], j: int, pre: float = 0.05,
     return out
 
 
+PREFIT_SAMPLES = 60_000
+"""A first start on more samples than this (five minutes at 200 Hz) first converges on the
+first ``PREFIT_SAMPLES`` of them and then on all of them from there: the iterations far from
+the optimum are paid on a part of the data (the full-data optimum is the one reached, from a
+start near it; an hour converges in a few full-data iterations instead of forty)."""
+
+
+def _first_part(segments: Sequence[Segment]) -> list[Segment]:
+    """The segments' first :data:`PREFIT_SAMPLES` samples (whole segments in order, the last
+    one cut), or ``[]`` when there are not more samples than that."""
+    if sum(s.n for s in segments) <= PREFIT_SAMPLES:
+        return []
+    out: list[Segment] = []
+    left = PREFIT_SAMPLES
+    for s in segments:
+        if left < MIN_FIT_SAMPLES:
+            break
+        out.append(s if s.n <= left else s.rows(0, left))
+        left -= out[-1].n
+    return out
+
+
 def _x0_guess(seg: Segment, model: OEModel | None = None) -> Array:
     """Initial-state start (nx,): the mean of the first 3 outputs, mapped to the states by the
     structure when it has hidden states (:func:`~dvt_identify.structures.initial_state`)."""
@@ -271,7 +301,8 @@ class OEFit:
             6.6-12.9 mm on the test record, the window 5.0-5.2 mm).
 
     Fitted attributes: ``theta_`` (p,), ``x0_`` list of (nx,), ``cost_`` (0.5 sum of squared
-    weighted residuals), ``jac_`` (m, q) over the free parameters then the initial states,
+    weighted residuals), ``jac_`` (m, q) over the free parameters then the initial states
+    (``None`` for a problem too large to hold it: :mod:`dvt_identify.streamls`),
     ``residual_`` (m,), ``std_`` (p,) parameter standard deviations (0 for fixed ones),
     ``starts_`` list of :class:`StartResult`, ``n_estimated_`` (free parameters + initial states),
     ``weights_`` (ny,), ``seconds_``, ``at_bounds_`` (names of the free parameters at a bound,
@@ -307,6 +338,13 @@ class OEFit:
                            f"{init_window!r}")
         self.init_window = int(init_window)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """The fit without its progress callback (a fit handed back from a worker process,
+        :mod:`dvt_identify.parallel`, is pickled; a callback may be a closure)."""
+        state = dict(self.__dict__)
+        state["progress"] = None
+        return state
+
     @property
     def _nx0(self) -> int:
         """Initial-state unknowns per segment in the least-squares vector (0 with a window)."""
@@ -316,31 +354,24 @@ class OEFit:
                   iterations: int = 3) -> Array:
         """The initial state (nx,) that best reproduces the first ``init_window`` samples of
         ``seg`` (weighted outputs) at parameters ``theta``: Gauss-Newton from ``guess``
-        (default the outputs' first samples mapped to the states) with a forward-difference
-        Jacobian, solved by SVD so that a state the window does not see keeps its guess
-        (exact after one step for a model affine in its initial state)."""
+        (default the outputs' first samples mapped to the states) with the simulation's own
+        sensitivities (:func:`~dvt_identify.sensitivity.simulate_sens`), solved by SVD so that
+        a state the window does not see keeps its guess (exact after one step for a model
+        affine in its initial state)."""
         m = self.model
         n = max(1, min(self.init_window or seg.n, seg.n))
         part = seg if n >= seg.n else seg.rows(0, n)
         w = self.weights_ if hasattr(self, "weights_") else self._output_weights([seg])
         x0 = np.asarray(_x0_guess(seg, m) if guess is None else guess, dtype=float).copy()
         target = (part.y / w).ravel()
-
-        def sim(x: Array) -> Array:
-            with np.errstate(all="ignore"):
-                return np.asarray((m.simulate(theta, part, x) / w).ravel())
-        wx = w if m.C is None else np.full(m.nx, float(np.max(w)))
         for _ in range(max(1, iterations)):
             try:
-                base = sim(x0)
-                J = np.empty((base.size, m.nx))
-                for j in range(m.nx):
-                    h = 1e-6 * max(abs(float(x0[j])), float(wx[j]), 1e-12)
-                    xp = x0.copy()
-                    xp[j] += h
-                    J[:, j] = (sim(xp) - base) / h
+                with np.errstate(all="ignore"):
+                    _, yb, S = simulate_sens(m, theta, part, x0, (), True)
             except (DivergedError, np.linalg.LinAlgError, ValueError, OverflowError):
                 break
+            base = (yb / w).ravel()
+            J = (S / w[None, :, None]).reshape(base.size, m.nx)
             r = target - base
             if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
                 break
@@ -392,6 +423,45 @@ class OEFit:
                 parts.append(np.full(seg.y.size, PENALTY))
         return _clean(np.concatenate(parts))
 
+    def _jacobian(self, theta: Array, segments: Sequence[Segment], x0s: Sequence[Array],
+                  w: Array, params: bool = True) -> Array:
+        """``d residual / d z`` (m, q) of :meth:`_residual`: the free parameters, then each
+        segment's initial state (with a window: the parameters alone, through the window's
+        initial state, ``dx0/dtheta = -O^+ dyhat_window/dtheta`` with ``O`` the window's
+        initial-state sensitivity, Gauss-Newton). From the simulation's forward sensitivities
+        (:mod:`dvt_identify.sensitivity`); a segment that cannot be simulated gives zeros.
+        ``params`` false: the initial states' columns alone."""
+        q = int(self.model.free.sum()) * params + len(segments) * self._nx0
+        return np.vstack([dense(self._rows(theta, seg, x0, w, k, params), q)[0]
+                          for k, (seg, x0) in enumerate(zip(segments, x0s, strict=True))])
+
+    def _rows(self, theta: Array, seg: Segment, x0: Array, w: Array, k: int,
+              params: bool = True) -> Block:
+        """Segment ``k``'s rows of :meth:`_jacobian` over its own unknowns (the free
+        parameters and its initial state) and of :meth:`_residual`, from one simulation with
+        sensitivities (:data:`~dvt_identify.streamls.Block`)."""
+        m = self.model
+        free = np.flatnonzero(m.free) if params else np.zeros(0, dtype=int)
+        nf, nx = int(free.size), m.nx
+        nx0 = self._nx0
+        cols = np.concatenate([np.arange(nf), nf + k * nx0 + np.arange(nx0)]).astype(np.int64)
+        J = np.zeros((seg.y.size, nf + nx0))
+        try:
+            with np.errstate(all="ignore"):
+                _, yh, S = simulate_sens(m, theta, seg, x0, free, True)
+        except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError,
+                DivergedError):  # the residual is the penalty there
+            return J, np.full(seg.y.size, PENALTY), cols
+        Sk = -(S / w[None, :, None]).reshape(seg.y.size, nf + nx)
+        if self.init_window > 0:
+            nw = min(seg.n, self.init_window) * m.ny
+            dx0 = -np.linalg.lstsq(Sk[:nw, nf:], Sk[:nw, :nf], rcond=1e-10)[0]
+            J[:, :nf] = Sk[:, :nf] + Sk[:, nf:] @ dx0
+        else:
+            J[:] = Sk
+        J = np.nan_to_num(J, nan=0.0, posinf=0.0, neginf=0.0)
+        return J, _clean(((seg.y - yh) / w).ravel()), cols
+
     def fit(self, segments: Sequence[Segment]) -> OEFit:
         """Fit to ``segments``; returns self.
 
@@ -429,13 +499,28 @@ class OEFit:
     def _run_starts(self, problem: _Problem, starts: Sequence[Array],
                     results: list[tuple[Any, Array]], ref: float, first: int) -> None:
         """Run ``starts`` (numbered from ``first``; ``first == 0``: the first runs to
-        convergence and is the reference) and append the usable results."""
+        convergence and is the reference) and append the usable results. The first start's
+        run and the screens of the others do not depend on each other and are shared between
+        the cores (:func:`~dvt_identify.parallel.fork_map`); the decisions (polish a screened
+        start that beats the best so far) are then taken in start order, as one after the
+        other."""
         total = first + len(starts)
-        for k, st in enumerate(starts):
-            i = first + k
+
+        def run(k: int) -> tuple[Any, BaseException | None, float]:
             t0 = time.monotonic()
             try:
-                r, note, same, usable = self._run_start(problem, i, st, ref)
+                return self._first_or_screen(problem, first + k, starts[k]), None, t0
+            except ValueError as exc:
+                return None, exc, t0
+        done = fork_map(run, range(len(starts)))
+        for k, st in enumerate(starts):
+            i = first + k
+            r, err, t0 = done[k]
+            if err is not None:
+                self._say(f"start {i + 1}/{total} failed: {err}")
+                continue
+            try:
+                r, note, same, usable = self._decide(problem, i, st, r, ref)
             except ValueError as exc:
                 self._say(f"start {i + 1}/{total} failed: {exc}")
                 continue
@@ -683,12 +768,42 @@ class OEFit:
 
     def _solve(self, problem: _Problem, st: Array, z0: Array, budget: int | None,
                segs: Sequence[Segment]) -> Any:
-        """``least_squares`` over the free parameters and initial states from ``z0``."""
+        """``least_squares`` over the free parameters and initial states from ``z0``; a
+        problem whose dense Jacobian would be large is handed to it by its triangular factor,
+        built segment by segment (:mod:`dvt_identify.streamls`: the same steps, memory that
+        does not grow with the recording)."""
+        if not dense_ok(sum(sg.y.size for sg in segs), z0.size):
+            return self._solve_factored(problem, st, z0, budget, segs)
+
         def fun(z: Array) -> Array:
             theta, x0s = self._unpack(z, st, problem.nseg, segs)
             return self._residual(theta, segs, x0s, problem.w)
-        return least_squares(fun, z0, bounds=(problem.zlo, problem.zhi), x_scale="jac",
-                             method="trf", max_nfev=budget, ftol=1e-9, xtol=1e-9, gtol=1e-9)
+
+        def jac(z: Array) -> Array:
+            theta, x0s = self._unpack(z, st, problem.nseg, segs)
+            return self._jacobian(theta, segs, x0s, problem.w)
+        return least_squares(fun, z0, jac=jac, bounds=(problem.zlo, problem.zhi),
+                             x_scale="jac", method="trf", max_nfev=budget, ftol=1e-9,
+                             xtol=1e-9, gtol=1e-9)
+
+    def _solve_factored(self, problem: _Problem, st: Array, z0: Array, budget: int | None,
+                        segs: Sequence[Segment]) -> Any:
+        """:meth:`_solve` for a large problem (:class:`~dvt_identify.streamls.Factored`); the
+        result's ``fun`` and ``jac`` are the factored problem's (``factored`` is set)."""
+        def blocks(z: Array) -> Iterator[Block]:
+            theta, x0s = self._unpack(z, st, problem.nseg, segs)
+            for k, (seg, x0) in enumerate(zip(segs, x0s, strict=True)):
+                yield self._rows(theta, seg, x0, problem.w, k)
+        def thunks(z: Array) -> list[Callable[[], Block]]:
+            theta, x0s = self._unpack(z, st, problem.nseg, segs)
+            return [partial(self._rows, theta, seg, x0, problem.w, k)
+                    for k, (seg, x0) in enumerate(zip(segs, x0s, strict=True))]
+        fac = Factored(blocks, z0.size, thunks if len(segs) > 1 else None)
+        r = least_squares(fac.residual, z0, jac=fac.jacobian,
+                          bounds=(problem.zlo, problem.zhi), x_scale="jac", method="trf",
+                          max_nfev=budget, ftol=1e-9, xtol=1e-9, gtol=1e-9)
+        r.factored = True
+        return r
 
     def _cost(self, problem: _Problem, st: Array, z: Array) -> float:
         """Cost (0.5 sum of squared weighted residuals) of ``z`` on the full data."""
@@ -696,22 +811,42 @@ class OEFit:
         r = self._residual(theta, problem.segments, x0s, problem.w)
         return 0.5 * float(r @ r)
 
-    def _run_start(self, problem: _Problem, i: int, st: Array, ref: float
-                   ) -> tuple[Any, str, bool | None, bool]:
-        """Run start ``i`` from ``st``: the first to convergence; the others screened with a
-        small budget on the decimated data and polished only when better than the first
-        (cost ``ref``). Returns the result, its note, whether a screened start reached the
-        first's minimum and whether its residual and Jacobian are the full data's."""
+    def _first_or_screen(self, problem: _Problem, i: int, st: Array) -> Any:
+        """Start ``i`` from ``st``: the first run to convergence on the full data; another
+        screened with a small budget on the decimated data, its cost then taken on the full
+        data (to compare with the first start's)."""
         guesses = ([] if self.init_window > 0
                    else [_x0_guess(s, self.model) for s in problem.segments])
         z0 = np.clip(np.concatenate([st[self.model.free], *guesses]), problem.zlo, problem.zhi)
         if i == 0:
-            return self._solve(problem, st, z0, self.max_nfev, problem.segments), "", None, True
-        q = problem.q
+            part = _first_part(problem.segments)
+            if part:  # a long recording: converge on its first part, then on all of it
+                sub = _Problem.make(self, part)
+                zp = np.clip(np.concatenate([st[self.model.free], *guesses[: len(part)]]),
+                             sub.zlo, sub.zhi)
+                rp = self._solve(sub, st, zp, self.max_nfev, part)
+                nf = int(self.model.free.sum())
+                z0 = np.clip(np.concatenate([rp.x, z0[len(rp.x):]]) if len(rp.x) >= nf
+                             else z0, problem.zlo, problem.zhi)
+                self._say(f"first start on the first {sum(s.n for s in part)} samples: cost "
+                          f"{rp.cost:.6g} after {rp.nfev} evaluations; now on all "
+                          f"{sum(s.n for s in problem.segments)}")
+            return self._solve(problem, st, z0, self.max_nfev, problem.segments)
         r = self._solve(problem, st, z0, problem.screen_nfev, problem.screen_segments)
+        r.cost = self._cost(problem, st, r.x) if problem.q > 1 else float(r.cost)
+        return r
+
+    def _decide(self, problem: _Problem, i: int, st: Array, r: Any, ref: float
+                ) -> tuple[Any, str, bool | None, bool]:
+        """What start ``i``'s run (:meth:`_first_or_screen`) gives: the first as it is; a
+        screened one polished to convergence on the full data only when it is already better
+        than the best so far (cost ``ref``). Returns the result, its note, whether a screened
+        start reached the first's minimum and whether its residual and Jacobian are the full
+        data's."""
+        if i == 0:
+            return r, "", None, True
+        q = problem.q
         note = f" (screened{f' at 1/{q} rate' if q > 1 else ''})"
-        # compared with the first start on the full data
-        r.cost = self._cost(problem, st, r.x) if q > 1 else float(r.cost)
         same: bool | None = bool(r.cost <= ref * (1 + 1e-3))
         if r.cost < ref * (1 - 1e-4):
             r = self._solve(problem, st, r.x, self.max_nfev, problem.segments)  # polish
@@ -737,11 +872,19 @@ class OEFit:
         self.theta_ = theta
         self.x0_ = [np.asarray(x, float) for x in x0s]
         self.cost_ = float(best.cost)
-        self.residual_ = np.asarray(best.fun, float)
-        self.jac_ = np.asarray(best.jac, float)
         # HAC sandwich (lag window): holds for coloured residuals (dvt_identify.uncertainty)
-        std_free = sandwich_covariance(self.jac_, self.residual_, segments[0].y.shape[1],
-                                       [sg.n for sg in segments]).std
+        if getattr(best, "factored", False):  # built segment by segment, never held whole
+            self.jac_ = None
+            self.residual_, cov = sandwich_by_segment(
+                lambda k: self._rows(theta, segments[k], x0s[k], self.weights_, k),
+                [sg.n for sg in segments], segments[0].y.shape[1],
+                int(free.sum()) + nseg * self._nx0)
+            std_free = cov.std
+        else:
+            self.residual_ = np.asarray(best.fun, float)
+            self.jac_ = np.asarray(best.jac, float)
+            std_free = sandwich_covariance(self.jac_, self.residual_, segments[0].y.shape[1],
+                                           [sg.n for sg in segments]).std
         std = np.zeros(len(m.specs))
         std[free] = std_free[: int(free.sum())]
         self.std_ = std
@@ -774,7 +917,11 @@ class OEFit:
 
         def fun(x0: Array) -> Array:
             return self._residual(th, [part], [x0], w)
-        r = least_squares(fun, _x0_guess(seg, self.model), method="trf", x_scale="jac")
+
+        def jac(x0: Array) -> Array:
+            return self._jacobian(th, [part], [x0], w, params=False)
+        r = least_squares(fun, _x0_guess(seg, self.model), jac=jac, method="trf",
+                          x_scale="jac")
         return np.asarray(r.x, float)
 
     def predict(self, seg: Segment, x0: Array | None = None) -> Array:

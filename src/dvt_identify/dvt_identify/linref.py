@@ -28,6 +28,15 @@ Array = NDArray[np.float64]
 MAX_SAMPLES = 6000
 """The reference is fitted on the estimation data decimated (consistently with the hold) to at
 most about this many samples per segment: it is a yardstick, fitted in seconds."""
+MAX_THIN = 2
+"""... but by at most this factor (the fit rate resolves the dynamics; a tenfold thinning of a
+long segment would alias them) ..."""
+MAX_TOTAL = 4 * MAX_SAMPLES
+"""... and on at most this many samples in all: a long recording gives the reference its first
+part (in order of the segments), not a coarser rate (an hour at 200 Hz: its first two minutes,
+where six ten-minute segments cost two minutes of reference fitting)."""
+MIN_PART = 100
+"""Fewest samples of a segment's part handed to the reference."""
 HOLDOUT = 0.3
 """With cross-validated selection the reference's order is chosen on the last 30 % of each
 estimation segment (fitted on the rest)."""
@@ -67,10 +76,20 @@ class ReferenceStage:
 
 
 def _thin(segs: Sequence[Segment]) -> list[Segment]:
-    out = []
+    """The reference's estimation data (:data:`MAX_SAMPLES`, :data:`MAX_THIN`,
+    :data:`MAX_TOTAL`)."""
+    out: list[Segment] = []
+    total = 0
     for s in segs:
-        q = max(1, math.ceil(s.n / MAX_SAMPLES))
-        out.append(zoh_decimate(s, q) if q > 1 and s.n // q >= 10 else s)
+        q = max(1, min(math.ceil(s.n / MAX_SAMPLES), MAX_THIN))
+        t = zoh_decimate(s, q) if q > 1 and s.n // q >= 10 else s
+        room = MAX_TOTAL - total
+        if out and room < 2 * MIN_PART:
+            break
+        if t.n > room:
+            t = t.rows(0, room)
+        out.append(t)
+        total += t.n
     return out
 
 

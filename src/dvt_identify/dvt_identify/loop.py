@@ -79,6 +79,7 @@ from dvt_identify.fit import OEFit, Progress, fit_segments
 from dvt_identify.identifiability import Identifiability
 from dvt_identify.linref import ReferenceStage, fit_reference, mapped_starts
 from dvt_identify.metrics import Figures, figures
+from dvt_identify.parallel import fork_map
 from dvt_identify.resid import (
     STRUCTURED_SHARE,
     OutputResidual,
@@ -104,13 +105,16 @@ admissible and removes at least :data:`MIN_EXPLAINED` of the structured residual
 significance (the validation test, or LR/BIC on the estimation data) is reported as "likely,
 not proven" with its figures (short records: the test lacks the samples, not the effect the
 size)."""
-FLOOR_OVERRIDE = 0.10
+FLOOR_OVERRIDE = 0.15
 """A residual the first-difference verdict calls at the noise floor still gets its round when a
 candidate's score explains at least this share of it (or a sensor map shows its signature):
 the first difference counts fast structure as noise (measured 2026-11-26: on the plant's mesh
 ripple the sun residual reads 0 % above the floor while the periodic candidate explains 25-45 %
 of it, by draw; on six randomised clean plants, 1 kHz and 62.5 Hz, the strongest candidate
-explains 0.4-2.4 %)."""
+explains 0.4-2.4 %; on the live loop's 2.5-s first refit after a friction step, once both
+Coulomb steps are in, a spurious sun periodic term explains 10.5 %
+(``test_supervisor_refit.py::test_first_refit_names_both_coulomb_steps_on_a_few_seconds``),
+which 0.10 let through: 0.15 sits between that and the ripple's 25 %)."""
 
 
 @dataclass(frozen=True)
@@ -573,13 +577,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         if not screened:
             say(f"round {rnd}: no candidate scores significantly (LM p < {cfg.alpha})")
         trials = []
-        for sc in screened[: cfg.max_tries_per_round]:
-            say(f"round {rnd}: refit with {sc.label}")
-            dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say, folds,
-                       floors)
-            say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
-                f"({dec.reason})")
-            trials.append(dec)
+        trials.extend(_refits(current, screened[: cfg.max_tries_per_round], fit_segs, est,
+                              val, same_rate, cfg, rnd, say, folds, floors))
         if not any(d.accepted for d in trials) and len(named) < len(remaining):
             from dvt_identify.unlisted import propose
 
@@ -627,6 +626,21 @@ def _folds(fit: OEFit, fit_segs: Sequence[Segment], folds: Sequence[Sequence[int
 def _fmt(f: Figures) -> str:
     return ", ".join(f"{n} {v:.2f} %" for n, v in zip(f.output_names, f.fit_percent,
                                                        strict=True))
+
+
+def _refits(current: Stage, scores: Sequence[CandidateScore], fit_segs: Sequence[Segment],
+            est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
+            rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None,
+            floors: Sequence[Any] | None) -> list[Decision]:
+    """A round's refits (:func:`_try`), independent of each other: shared between the cores
+    (:func:`dvt_identify.parallel.fork_map`), their decisions in the order of ``scores``."""
+    def one(sc: CandidateScore) -> Decision:
+        say(f"round {rnd}: refit with {sc.label}")
+        dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say, folds, floors)
+        say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
+            f"({dec.reason})")
+        return dec
+    return fork_map(one, list(scores))
 
 
 def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],

@@ -18,8 +18,11 @@ so the live residual on ``/dvt/model/residual`` reflects the refitted model. A J
 With ``supervisor.enabled`` the node also closes the loop by itself (``docs/loop.md`` §3-4):
 change alarms on ``/dvt/model/change`` and the live residual on ``/dvt/model/residual`` feed
 the pure :class:`dvt_identify.supervisor.Supervisor`; its actions are performed here: a
-snapshot request to the rolling recorder, the refit of the window in a worker thread
-(:func:`dvt_identify.supervisor.refit`), the push / rollback (each one transaction,
+snapshot request to the rolling recorder, the refit of the window in a process of its own at
+the lowest priority (:class:`dvt_identify.refit_process.RefitWorker` running
+:func:`dvt_identify.refit.refit`; started warm with the node, killed when the supervisor stops
+waiting for it, a crash reported as the episode's outcome ``refit_crashed``, reaped when the
+node stops), the push / rollback (each one transaction,
 :func:`push_parameters`), every step on ``/diagnostics`` (``dvt_identify: supervisor``), and
 per episode ``episode-N.json`` / ``.md`` in ``output_dir/episodes`` plus the record on
 ``/dvt/identify/episode``.
@@ -31,6 +34,7 @@ import dataclasses
 import json
 import math
 import queue
+import struct
 import sys
 import threading
 import time
@@ -50,6 +54,8 @@ from std_srvs.srv import Trigger
 from dvt_identify import supervisor as sv
 from dvt_identify.errors import DvtIdentifyError, SupervisorError
 from dvt_identify.pipeline import model_push, run
+from dvt_identify.refit import RefitSettings, plain_value
+from dvt_identify.refit_process import DEFAULT_NICE, RefitWorker
 from dvt_model import rosutil
 from dvt_model.contract import (
     CHANGE_QOS,
@@ -68,13 +74,15 @@ from dvt_model.contract import (
     SPEED_NAMES,
     SRV_IDENTIFY_RUN,
 )
+from dvt_model.node import VELOCITY, JointStateReader, stamp_of
 
 LATCHED = rosutil.LATCHED_QOS
 """QoS of the result: a late subscriber still gets the last one (the contract's LATCHED_QOS)."""
 SUPERVISOR_DIAG = "dvt_identify: supervisor"
 """``/diagnostics`` status name of the supervisor's steps."""
-TICK_PERIOD = 0.2
-"""Seconds between supervisor ticks (5 Hz)."""
+TICK_PERIOD = 0.1
+"""Seconds between supervisor ticks (10 Hz; each also polls the refit process, which costs a
+queue check)."""
 PARAMETER_TIMEOUT = 30.0
 """Seconds to wait for the model node's parameters (it answers after its queued samples)."""
 _PARAM_TYPES = {"double": Parameter.Type.DOUBLE, "double_array": Parameter.Type.DOUBLE_ARRAY,
@@ -285,11 +293,20 @@ class IdentifyNode(Node):
                           "for the recorder's snapshot")
         lag = declare("max_data_lag_s", 30.0, "the supervisor's clock is the newest residual "
                       "stamp, but at most this far behind the node clock [s]")
+        hold = declare("hold_structure", True, "the first refit of an episode holds the "
+                       "structure (M, D) at the model in use and fits the effects on top; "
+                       "false: every refit frees everything")
+        nice = declare("refit_nice", DEFAULT_NICE, "niceness of the refit process and of its "
+                       "session's autogroup, -20..19 (19: the lowest priority, the chain comes "
+                       "first; below the node's own: only with the right to)")
         for name, v in (("starts", starts), ("fit_decimate", decim)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise SupervisorError(f"{p}.{name}: expected an integer >= 0, got {v!r}")
-        if not isinstance(from_model, bool):
-            raise SupervisorError(f"{p}.from_model: expected true or false, got {from_model!r}")
+        if isinstance(nice, bool) or not isinstance(nice, int) or not -20 <= nice <= 19:
+            raise SupervisorError(f"{p}.refit_nice: expected an integer -20..19, got {nice!r}")
+        for name, v in (("from_model", from_model), ("hold_structure", hold)):
+            if not isinstance(v, bool):
+                raise SupervisorError(f"{p}.{name}: expected true or false, got {v!r}")
         if isinstance(timeout, bool) or not isinstance(timeout, int | float) \
                 or not (math.isfinite(timeout) and timeout > 0):
             raise SupervisorError(f"{p}.snapshot_timeout_s: expected a time > 0 s, got "
@@ -305,11 +322,12 @@ class IdentifyNode(Node):
             config = sv.SupervisorConfig(**values).validated()
         except TypeError as exc:  # pragma: no cover - parameter types are the declared ones
             raise SupervisorError(f"{p}: {exc}") from exc
-        self.refit_settings = sv.RefitSettings(
+        self.refit_settings = RefitSettings(
             description=str(self.get_parameter("description").value),
             augment=bool(self.get_parameter("augment").value),
             starts=int(starts) or None, fit_decimate=int(decim) or None,
-            from_model=from_model)
+            from_model=from_model, hold_structure=hold)
+        self.refit_worker: RefitWorker | None = None
         if not enabled:
             return
         self.supervisor = sv.Supervisor(config)
@@ -321,18 +339,29 @@ class IdentifyNode(Node):
         self.episode_dirs: dict[int, Path] = {}
         self._snapshot_wait: dict[str, tuple[sv.RequestFit, Path, float]] = {}
         self._done: queue.SimpleQueue[Callable[[float], list[sv.Action]]] = queue.SimpleQueue()
-        self._fit_thread: threading.Thread | None = None
         self._current: _Reader | None = None
+        self._job: tuple[sv.RequestFit, Path, Path] | None = None  # waits for _current
+        self._residual_reader = JointStateReader(SPEED_NAMES, VELOCITY)
+        # the refit's process, started now: it imports the fit's code while nothing happens
+        out_dir = Path(str(self.get_parameter("output_dir").value))
+        self.refit_worker = RefitWorker(out_dir / "refit-process.log", nice=int(nice),
+                                        warm=self.refit_settings.to_dict())
+        try:
+            self.refit_worker.start()
+        except OSError as exc:  # the first refit tries again and reports what fails
+            self.get_logger().error(f"refit process not started: {exc}")
         self.pub_snapshot = self.create_publisher(String, RECORDER_SNAPSHOT_REQUEST,
                                                   rosutil.qos(SNAPSHOT_REQUEST_QOS))
         self.pub_episode = self.create_publisher(String, IDENTIFY_EPISODE, rosutil.qos(CHANGE_QOS))
         self.create_subscription(String, MODEL_CHANGE, self._on_alarm, rosutil.qos(CHANGE_QOS))
+        # raw: the 1 kHz residual costs two struct unpacks per sample, not a message object
         self.create_subscription(JointState, MODEL_RESIDUAL, self._on_residual,
-                                 rosutil.SENSOR_QOS)
+                                 rosutil.SENSOR_QOS, raw=True)
         self.create_subscription(String, RECORDER_SNAPSHOT_RESULT, self._on_snapshot,
                                  rosutil.qos(CHANGE_QOS))
         self.create_timer(TICK_PERIOD, self._tick)
-        self.get_logger().info(f"supervisor enabled: {config}")
+        self.get_logger().info(f"supervisor enabled: {config}; refit process pid "
+                               f"{self.refit_worker.pid} at niceness {nice}")
 
     def _now(self) -> float:
         """The supervisor's clock [s]: the data time (the newest residual stamp) while the
@@ -358,17 +387,18 @@ class IdentifyNode(Node):
             return
         self._perform(actions)
 
-    def _on_residual(self, msg: JointState) -> None:
+    def _on_residual(self, raw: bytes) -> None:
+        """One serialised residual (a raw subscription: read as the model node reads its
+        inputs, :class:`dvt_model.node.JointStateReader`)."""
         if self.supervisor is None:
             return
         try:
-            values = dict(zip(msg.name, msg.velocity, strict=True))
-            residual = [float(values[n]) for n in SPEED_NAMES]
-            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            stamp = stamp_of(raw) * 1e-9
+            residual, _ = self._residual_reader.read(raw)
             self.supervisor.observe(stamp, residual)
             if stamp > self._newest_stamp and math.isfinite(stamp):
                 self._newest_stamp = stamp
-        except (KeyError, ValueError, SupervisorError):
+        except (KeyError, ValueError, struct.error, UnicodeDecodeError, SupervisorError):
             return  # a malformed residual sample is skipped (counted by the model node)
 
     def _tick(self) -> None:
@@ -384,7 +414,45 @@ class IdentifyNode(Node):
                     f"no snapshot result from the recorder for {ident!r} within "
                     f"{self.snapshot_timeout_s:g} s after the window's end (is dvt-recorder "
                     "running with ring_minutes > 0?)")), now))
+        self._refit_step(now)
         self._perform(self.supervisor.tick(now))
+        self._refit_step(self._now())
+
+    def _refit_step(self, now: float) -> None:
+        """Hand the waiting job to the refit process once the model in use is read, take its
+        answer, and kill it when the supervisor no longer waits for one (``fit_timeout_s``)."""
+        sup, worker = self.supervisor, self.refit_worker
+        if sup is None or worker is None:
+            return
+        if worker.busy and sup.state is not sv.State.REFITTING:
+            worker.cancel()
+            self.get_logger().warning(f"refit process killed: the supervisor stopped waiting "
+                                      f"for its result (state {sup.state.value})")
+        if self._job is not None and self._current is None:  # (read at the request, normally)
+            self._current = _Reader(self._get_model_parameters)
+        if self._job is not None and self._current is not None and self._current.done():
+            req, snapshot, work = self._job
+            self._job = None
+            try:
+                current = self._current.result()
+                worker.submit(snapshot, req, current, work, self.refit_settings.to_dict())
+            except Exception as exc:  # the model in use unreadable, no process: the outcome
+                self._perform(sup.fit_done(sv.FitOutcome(error=(
+                    f"{type(exc).__name__}: {exc}")), now))
+                return
+            self.get_logger().info(f"refit of episode {req.episode} ({req.stage}) handed to "
+                                   f"the refit process (pid {worker.pid})")
+        outcome = worker.poll()
+        if outcome is not None:
+            seconds = time.monotonic() - (worker.job_started_s or time.monotonic())
+            summary = {**outcome.summary, "refit_seconds": seconds,
+                       "refit_process": {"pid": worker.proc.pid if worker.proc else None,
+                                         "nice": worker.nice, "started": worker.started,
+                                         "crashes": worker.crashes}}
+            if outcome.crashed:
+                self.get_logger().error(outcome.error)
+                worker.start()  # a new process warms up for the next episode
+            self._perform(sup.fit_done(dataclasses.replace(outcome, summary=summary), now))
 
     def _perform(self, actions: list[sv.Action]) -> None:
         sup = self.supervisor
@@ -432,7 +500,8 @@ class IdentifyNode(Node):
     def _request_snapshot(self, req: sv.RequestFit) -> None:
         sup = self._require_supervisor()
         now = self._now()
-        work = self._episode_dir(req.episode)
+        # each refit of the episode (its stage) has its own snapshot, bags and report
+        work = self._episode_dir(req.episode) / req.stage
         if self.pub_snapshot.get_subscription_count() == 0:
             self._perform(sup.fit_done(sv.FitOutcome(error=(
                 f"no recorder subscribed to {RECORDER_SNAPSHOT_REQUEST} (start dvt-recorder "
@@ -441,7 +510,7 @@ class IdentifyNode(Node):
         work.mkdir(parents=True, exist_ok=True)
         # the model in use (and what a rollback restores) is read while the snapshot is made
         self._current = _Reader(self._get_model_parameters)
-        ident = f"{self.session}/episode-{req.episode}"
+        ident = f"{self.session}/episode-{req.episode}/{req.stage}"
         out = work / "snapshot"
         self._snapshot_wait[ident] = (req, work, req.validation[1] + self.snapshot_timeout_s)
         self.pub_snapshot.publish(String(data=json.dumps(
@@ -469,30 +538,13 @@ class IdentifyNode(Node):
         if data.get("truncated"):
             self.get_logger().warning(f"snapshot {ident}: the window starts before the ring's "
                                       "oldest segment (truncated)")
-        if self._fit_thread is not None and self._fit_thread.is_alive():
+        worker = self.refit_worker
+        if self._job is not None or (worker is not None and worker.busy):
             self._perform(sup.fit_done(sv.FitOutcome(error="busy: the previous refit is still "
                                                      "running"), self._now()))
             return
-        self._fit_thread = threading.Thread(
-            target=self._refit_work, args=(req, Path(str(data.get("out"))), work), daemon=True,
-            name="dvt-refit")
-        self._fit_thread.start()
-
-    def _refit_work(self, req: sv.RequestFit, snapshot: Path, work: Path) -> None:
-        t0 = time.monotonic()
-        try:
-            current = self._current.result() if self._current is not None else \
-                self._get_model_parameters()
-            outcome = sv.refit(snapshot, req, current, work, self.refit_settings)
-        except DvtIdentifyError as exc:
-            outcome = sv.FitOutcome(error=str(exc))
-        except Exception as exc:  # a worker must never take the node down
-            outcome = sv.FitOutcome(error=f"{type(exc).__name__}: {exc}")
-        seconds = time.monotonic() - t0
-        summary = {**outcome.summary, "refit_seconds": seconds}
-        result = dataclasses.replace(outcome, summary=summary)
-        sup = self._require_supervisor()
-        self._done.put(lambda now: sup.fit_done(result, now))
+        self._job = (req, Path(str(data.get("out"))), work)
+        self._refit_step(self._now())
 
     def _get_model_parameters(self) -> dict[str, Any]:
         """The model node's current parameter values (``None``: not set), read through its
@@ -509,7 +561,7 @@ class IdentifyNode(Node):
                                        f"{PARAMETER_TIMEOUT:g} s")
             time.sleep(0.01)
         values = future.result().values
-        return {n: sv.plain_value(Parameter.from_parameter_msg(
+        return {n: plain_value(Parameter.from_parameter_msg(
             rosutil_parameter(n, v)).value) for n, v in zip(names, values, strict=True)}
 
     def _start_push(self, values: Mapping[str, Any], rollback: bool) -> None:
@@ -544,6 +596,17 @@ class IdentifyNode(Node):
         self.get_logger().info(f"episode {report.episode}: {record.get('outcome')} -> "
                                f"{work.parent / (work.name + '.json')}")
 
+    def on_shutdown_hook(self) -> None:
+        """Stop and reap the refit process (:func:`dvt_model.rosutil.spin` calls this when the
+        node stops; :meth:`destroy_node` too)."""
+        worker = getattr(self, "refit_worker", None)
+        if worker is not None:
+            worker.close()
+
+    def destroy_node(self) -> None:
+        self.on_shutdown_hook()
+        super().destroy_node()
+
     def _diagnostics(self) -> None:
         level = {"failed": rosutil.ERROR}.get(self.state, rosutil.OK)
         values: dict[str, Any] = {"state": self.state, "runs": self.runs}
@@ -553,9 +616,14 @@ class IdentifyNode(Node):
         self.pub_diag.publish(rosutil.diagnostic(self, IDENTIFY_NODE, level, self.state,
                                                  values))
         if self.supervisor is not None:
+            worker = self.refit_worker
+            refit = {} if worker is None else {
+                "refit_process_pid": worker.pid, "refit_process_nice": worker.nice,
+                "refit_process_ready": worker.ready,
+                "refit_processes_started": worker.started, "refit_crashes": worker.crashes}
             self.pub_diag.publish(rosutil.diagnostic(
                 self, SUPERVISOR_DIAG, rosutil.OK, f"supervisor: {self.supervisor.state.value}",
-                {**self.supervisor.status(), "bad_alarms": self.bad_alarms}))
+                {**self.supervisor.status(), "bad_alarms": self.bad_alarms, **refit}))
 
 
 class _Reader:
@@ -574,6 +642,10 @@ class _Reader:
             self._value = fn()
         except BaseException as exc:  # handed to the caller of result()
             self._error = exc
+
+    def done(self) -> bool:
+        """Whether the value (or the exception) is there: :meth:`result` will not wait."""
+        return not self._thread.is_alive()
 
     def result(self) -> dict[str, Any]:
         self._thread.join()

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -93,7 +93,8 @@ class Push:
 
 
 def model_node_parameters(stage: Stage, n_model_effects: int = 0,
-                          input_joints: Sequence[str] | None = None) -> Push:
+                          input_joints: Sequence[str] | None = None,
+                          held: Mapping[str, float] | None = None) -> Push:
     """Build the model node's parameters from a fitted stage.
 
     Args:
@@ -106,13 +107,17 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0,
         input_joints: the ``/dvt/currents`` joint of each model input, in input order (the
             description's ``inputs[i].joint``); ``None``: an input's own name, or its
             :data:`INPUT_ALIASES` entry.
+        held: values of structure parameters the fit held fixed (name -> value, e.g. the
+            ``M11..D22`` of the model in use when the supervisor's refit held the structure,
+            :func:`dvt_identify.supervisor.held_description`); a fitted value of the same
+            name wins.
 
     Raises:
         PushError: the structure has no M and D entries (not the DVT mechanical one), the
             model node would refuse a value (naming the parameter and the value), or
             ``input_joints`` has the wrong length.
     """
-    values = stage.parameters()
+    values = {**(held or {}), **stage.parameters()}
     try:
         M = [values["M11"], values["M12"], values["M12"], values["M22"]]
         D = [values["D11"], values["D12"], values["D12"], values["D22"]]

@@ -8,10 +8,10 @@ every physical model and simulated and scored exactly like it (issue 21 item 1).
 at the sample time ``dt_`` of the first estimation segment, and keeps the smallest order whose
 selection fit is within :data:`SELECT_TOL` points of the best.
 
-Each order starts from a subspace fit (N4SID/PO-MOESP of the maintained ``nfoursid`` package)
-on the longest estimation segment at ``dt_``, decimated to at most :data:`N4SID_SAMPLES`
-samples (``nfoursid`` takes a full SVD whose size grows with the square of the record) and
-brought back to ``dt_`` by the ``q``-th root of its poles. When that step fails, or the refined
+Each order starts from a subspace fit (N4SID/PO-MOESP, the scheme of the ``nfoursid`` package
+computed here with numpy, :class:`_N4SID`) on the longest estimation segment at ``dt_``,
+decimated to at most :data:`N4SID_SAMPLES` samples and brought back to ``dt_`` by the ``q``-th
+root of its poles. When that step fails, or the refined
 fit is worse on the estimation data than the previous order's, the order starts from the
 previous order's optimum augmented by one small stable mode (rising order); ``orders_`` says
 which start was kept.
@@ -19,7 +19,9 @@ which start was kept.
 The start is refined by output error: ``scipy.optimize.least_squares`` minimises the simulation
 error over all estimation segments (each with its own initial state as unknowns, outputs
 weighted by ``1/std(y_j)`` pooled over segments) with an analytic Jacobian from a
-numba-compiled sensitivity recursion. ``A``, ``B``, ``C`` (and ``D``) are fully parametrised.
+numba-compiled sensitivity recursion, handed to MINPACK by its triangular factor
+(:class:`_Compressed`). The orders' subspace starts are refined on both cores. ``A``,
+``B``, ``C`` (and ``D``) are fully parametrised.
 Poles may leave the unit circle slightly (a drive under closed-loop control can need an
 integrator-like pole at 1.0001); a simulation that overflows gives a finite penalty.
 
@@ -33,10 +35,11 @@ matrix logarithm of ``[[A, B], [0, I]]`` (zero-order hold), exponentiated at its
 fit differentiates through that conversion (Fréchet derivatives of ``expm``).
 
 Measured on EMPS (24 841 samples at 1 kHz, force in, position out; 2 cores shared with other
-jobs, load 4-5): orders 1..4 fit in 3.4 s (one BLAS thread; 4.7-5.7 s with the default
-threads), plus 1.3 s the first time numba compiles the kernels and 0.5 s to import
-``nfoursid``/``pandas``; orders 1..6 in 12.8 s. Per iteration the time goes to the sensitivity
-recursion (``O(N n^2 p)``) and the QR of the ``N x p`` Jacobian inside MINPACK. Validation
+jobs, load 4-5), before the subspace step was computed here and the Jacobian factored: orders
+1..4 fit in 3.4 s (one BLAS thread; 4.7-5.7 s with the default threads), plus 1.3 s the first
+time numba compiles the kernels and 0.5 s to import ``nfoursid``/``pandas``; orders 1..6 in
+12.8 s. Per iteration the time goes to the sensitivity recursion (``O(N n^2 p)``) and the QR of
+the ``N x p`` Jacobian (now one LAPACK QR per evaluation instead of MINPACK's own). Validation
 RMS position error, orders 1-4, initial state from the first 20 samples (the benchmark's
 protocol): 39.0 / 21.1 / 693 / 20 370 mm (order 2 chosen); from the ``OEFit`` window: 17.3 /
 4.75 / 4.45 / 4.44 mm. The fitted models keep a slightly unstable real pole (+0.06 to +0.1 1/s)
@@ -60,6 +63,8 @@ from scipy.optimize import least_squares
 from dvt_identify.data import Segment
 from dvt_identify.errors import DataError, FitError
 from dvt_identify.metrics import figures
+from dvt_identify.parallel import fork_map, workers
+from dvt_identify.streamls import Factored
 
 Array = NDArray[np.float64]
 
@@ -182,6 +187,14 @@ def _sim_jac(A: Array, B: Array, C: Array, D: Array, u: Array, x0: Array, feed: 
         x, xn = xn, x
         S, Sn = Sn, S
     return True
+
+
+def warm_up() -> None:
+    """Load the two kernels (compiled on a process's first use, cached on disk)."""
+    z = np.zeros((1, 1))
+    y = np.zeros((2, 1))
+    _sim(z, z, z, z, np.zeros((2, 1)), np.zeros(1), y)
+    _sim_jac(z, z, z, z, np.zeros((2, 1)), np.zeros(1), False, y, np.zeros((2, 4)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -407,14 +420,20 @@ class LinearReference:
         prev: tuple[StateSpace, float] | None = None
         fits: dict[int, tuple[StateSpace, list[Array]]] = {}
         self.notes_: list[str] = []
+        # every order's subspace start refined and scored at once, on both cores; what then
+        # depends on the previous order (the fallback start, the break) in order, below
+        first = self._subspace_orders(n4, est, sel)
         for n in range(1, self.max_order + 1):
             t0 = time.perf_counter()
             tried: list[tuple[float, StateSpace, list[Array], int, str]] = []
             why = []
-            try:
-                tried.append(self._refine(n4.start(n, self.feedthrough), est, n4.label))
-            except _FAILURES as exc:
-                why.append(f"n4sid start failed: {exc}")
+            got, spent = first[n]
+            scores: _Scores | None = None
+            if isinstance(got, str):
+                why.append(f"n4sid start failed: {got}")
+            else:
+                tried.append(got[0])
+                scores = got[1]
             if not tried or (prev is not None and tried[0][0] > prev[1] * (1 + 1e-9)):
                 if tried:
                     why.append("the n4sid start ended worse than the previous order")
@@ -429,15 +448,17 @@ class LinearReference:
                 self.notes_.append(f"order {n}: not fitted ({'; '.join(why)}); higher orders "
                                    f"not tried")
                 break
-            cost, model, x0s, nfev, label = min(tried, key=lambda r: r[0])
+            k = min(range(len(tried)), key=lambda i: tried[i][0])
+            cost, model, x0s, nfev, label = tried[k]
             fits[n] = (model, x0s)
             prev = (model, cost)
-            est_fit, _ = self._score(model, est, x0s)
-            sel_fit, sel_rmse = self._score(model, sel)
+            if k > 0 or scores is None:
+                scores = self._scores(model, est, x0s, sel)
+            est_fit, sel_fit, sel_rmse = scores
             self.orders_.append(OrderRecord(
                 order=n, est_fit_percent=est_fit, sel_fit_percent=sel_fit,
-                sel_rmse=sel_rmse, seconds=time.perf_counter() - t0, start=label, nfev=nfev,
-                model=model))
+                sel_rmse=sel_rmse, seconds=spent + time.perf_counter() - t0, start=label,
+                nfev=nfev, model=model))
         best = max((r.sel_mean_fit for r in self.orders_), default=-math.inf)
         if not math.isfinite(best):
             raise FitError(f"LinearReference: no order 1..{self.max_order} could be fitted and "
@@ -455,6 +476,40 @@ class LinearReference:
             0 if self.init_window > 0 else len(est) * chosen.order)
         self.seconds_ = time.perf_counter() - t_all
         return self
+
+    def _scores(self, model: StateSpace, est: Sequence[Segment], x0s: Sequence[Array],
+                sel: Sequence[Segment]) -> _Scores:
+        """Estimation fit (from the fitted initial states), selection fit and RMSE."""
+        est_fit, _ = self._score(model, est, x0s)
+        sel_fit, sel_rmse = self._score(model, sel)
+        return est_fit, sel_fit, sel_rmse
+
+    def _subspace_orders(self, n4: _N4SID, est: Sequence[Segment], sel: Sequence[Segment]
+                         ) -> dict[int, tuple[tuple[_Refined, _Scores] | str, float]]:
+        """Each order's subspace start refined and scored, ``order -> (((cost, model, x0s,
+        nfev, label), scores) or why it failed, seconds)``; the orders are independent and
+        shared between the cores (:func:`dvt_identify.parallel.fork_map`), the largest first
+        (the cost of an iteration grows with the square of the parameters)."""
+        def one(n: int) -> tuple[tuple[_Refined, _Scores] | str, float]:
+            t0 = time.perf_counter()
+            try:
+                r = self._refine(n4.start(n, self.feedthrough), est, n4.label)
+            except _FAILURES as exc:
+                return str(exc), time.perf_counter() - t0
+            return (r, self._scores(r[1], est, r[2], sel)), time.perf_counter() - t0
+
+        def group(orders: list[int]) -> list[tuple[tuple[_Refined, _Scores] | str, float]]:
+            return [one(n) for n in orders]
+        work = sorted(range(1, self.max_order + 1), key=self._n_params, reverse=True)
+        groups: list[list[int]] = [[] for _ in range(min(workers(), len(work)))]
+        load = [0.0] * len(groups)
+        for n in work:  # largest first onto the least loaded worker
+            g = int(np.argmin(load))
+            groups[g].append(n)
+            load[g] += float(self._n_params(n) + n) ** 2
+        done = fork_map(group, groups)
+        return {n: r for orders, res in zip(groups, done, strict=True)
+                for n, r in zip(orders, res, strict=True)}
 
     def simulate(self, seg: Segment, x0: Array) -> Array:
         """Simulated outputs of ``seg`` from initial state ``x0`` (nx,), shape (N, ny).
@@ -596,8 +651,9 @@ class LinearReference:
         theta0 = prob.pack(start, x0s)
         if prob.residual(theta0)[0] == PENALTY:
             raise FitError(f"order {n}: the start cannot be simulated")
+        small = _Compressed(prob)
         try:
-            res = least_squares(prob.residual, theta0, jac=prob.jacobian, method="lm",
+            res = least_squares(small.residual, theta0, jac=small.jacobian, method="lm",
                                 x_scale="jac", max_nfev=self.max_nfev, ftol=FTOL)
             stop = "converged" if res.status > 0 else f"max_nfev {self.max_nfev} reached"
         except _StalledError:
@@ -650,6 +706,10 @@ def _whiten(m: StateSpace, est: Sequence[Segment], x0s: list[Array]
 
 
 _FAILURES = (np.linalg.LinAlgError, ValueError, FitError)
+_Refined = tuple[float, "StateSpace", list[Array], int, str]
+"""A refinement: cost, model, initial states, evaluations, how it was started."""
+_Scores = tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
+"""Estimation fit, selection fit and selection RMSE per output."""
 """What a failed start or refinement of one order raises."""
 
 
@@ -756,12 +816,21 @@ class _OEProblem:
     def jacobian(self, th: Array) -> Array:
         """The Jacobian (called once per iteration); raises :class:`_StalledError` when the best
         fit gained less than :data:`STALL_POINTS` over the last :data:`STALL_ITERATIONS`."""
+        self.stall_check()
+        return self.jacobian_at(th)
+
+    def stall_check(self) -> None:
+        """Note the best cost of this iteration; raise :class:`_StalledError` when it gained
+        less than :data:`STALL_POINTS` over the last :data:`STALL_ITERATIONS`."""
         if self.best is not None:
             self.history.append(self.best[0])
             h = self.history
             if (len(h) > STALL_ITERATIONS and self.fit_points(h[-1])
                     - self.fit_points(h[-1 - STALL_ITERATIONS]) < STALL_POINTS):
                 raise _StalledError
+
+    def jacobian_at(self, th: Array) -> Array:
+        """The Jacobian (N ny, p) of :meth:`residual` at ``th``."""
         m, x0s = self.unpack(th)
         n, ny = self.n, self.ny
         J = np.zeros((int(self.rows[-1]), self.p))
@@ -798,14 +867,40 @@ class _OEProblem:
         return J
 
 
+class _Compressed(Factored):
+    """The refinement's problem handed to MINPACK by its triangular factor
+    (:class:`~dvt_identify.streamls.Factored`, one block): Levenberg-Marquardt sees what it
+    would see from the full problem (``J^T J``, ``J^T r``, ``|r|`` and the column norms of
+    ``J``), while its own pivoted QR, the cost of an iteration on ``N ny`` rows, runs on
+    ``p + 1``; the Jacobian is formed at every residual evaluation instead of at every
+    accepted one. The Jacobian request also notes the iteration (the stall rule)."""
+
+    def __init__(self, prob: _OEProblem) -> None:
+        cols = np.arange(prob.p, dtype=np.int64)
+        super().__init__(lambda th: [(prob.jacobian_at(th), prob.residual(th), cols)], prob.p)
+        self.prob = prob
+
+    def jacobian(self, z: Array) -> Array:
+        self.prob.stall_check()
+        return super().jacobian(z)
+
+
 class _N4SID:
-    """Subspace starts from ``nfoursid`` on the longest estimation segment at ``dt``,
-    decimated to at most :data:`N4SID_SAMPLES` samples (block means of the input)."""
+    """Subspace starts on the longest estimation segment at ``dt``, decimated to at most
+    :data:`N4SID_SAMPLES` samples (block means of the input).
+
+    The PO-MOESP scheme of the ``nfoursid`` package (Verhaegen and Verdult, *Filtering and
+    system identification*, 2007, pp. 329 and 333; past inputs and outputs as instruments),
+    computed here with numpy: the same block Hankel matrices, LQ factor, observability
+    estimate and least-squares system matrices, with the observability matrix's singular value
+    decomposition taken once (economy size) for every order instead of a full one per order,
+    and without the package's import of pandas and matplotlib (a second of a process's first
+    identification)."""
 
     def __init__(self, est: Sequence[Segment], dt: float, max_order: int, ny: int) -> None:
         self.dt = dt
         self.error = ""
-        self.ident: object = None
+        self.vh: Array | None = None
         seg = max((s for s in est if math.isclose(s.dt, dt, rel_tol=1e-9)), key=lambda s: s.n)
         self.q = max(1, math.ceil(seg.n / N4SID_SAMPLES))
         self.label = "n4sid" + (f" (decimated by {self.q})" if self.q > 1 else "")
@@ -814,31 +909,56 @@ class _N4SID:
         if m < 4 * rows:
             self.error = f"{seg.name}: {m} samples are too few for {rows} block rows"
             return
-        u = seg.u[: m * self.q].reshape(m, self.q, -1).mean(axis=1)
-        y = seg.y[: m * self.q: self.q]
+        self.u = seg.u[: m * self.q].reshape(m, self.q, -1).mean(axis=1)
+        self.y = np.ascontiguousarray(seg.y[: m * self.q: self.q])
+        self.rows = rows
         try:
-            import pandas as pd
-            from nfoursid.nfoursid import NFourSID
-            ucol = [f"u{j}" for j in range(u.shape[1])]
-            ycol = [f"y{j}" for j in range(y.shape[1])]
-            df = pd.DataFrame(np.hstack([u, y]), columns=ucol + ycol)
-            ident = NFourSID(df, output_columns=ycol, input_columns=ucol, num_block_rows=rows)
-            ident.subspace_identification()
-            self.ident = ident
+            self.s, self.vh = _po_moesp(self.u, self.y, rows)
         except (np.linalg.LinAlgError, ValueError) as exc:
             self.error = f"{type(exc).__name__}: {exc}"
 
     def start(self, n: int, feedthrough: bool) -> StateSpace:
         """The order-``n`` subspace model at ``dt`` (ValueError / LinAlgError on failure)."""
-        if self.ident is None:
+        if self.vh is None:
             raise ValueError(self.error)
-        ss, _ = self.ident.system_identification(rank=n)  # type: ignore[attr-defined]
-        Aq, Bq = np.asarray(ss.a, float), np.asarray(ss.b, float)
-        C, D = np.asarray(ss.c, float), np.asarray(ss.d, float)
+        r = self.rows
+        # the state sequence from the observability estimate's leading n directions
+        x = (np.sqrt(self.s[:n])[:, None] * self.vh[:n])[:, :-1]
+        last_y, last_u = self.y[r:].T, self.u[r:].T
+        x_and_y = np.concatenate([x[:, 1:], last_y[:, :-1]])
+        x_and_u = np.concatenate([x[:, :-1], last_u[:, :-1]])
+        abcd = (np.linalg.pinv(x_and_u @ x_and_u.T) @ x_and_u @ x_and_y.T).T
+        Aq, Bq = abcd[:n, :n], abcd[:n, n:]
+        C, D = abcd[n:, :n], abcd[n:, n:]
         if not all(np.all(np.isfinite(M)) for M in (Aq, Bq, C, D)):
             raise ValueError(f"order {n}: non-finite subspace matrices")
-        A, B = _root_rate(Aq, Bq, self.q)
-        return StateSpace(A, B, C, D if feedthrough else np.zeros_like(D), self.dt)
+        A, B = _root_rate(np.asarray(Aq, float), np.asarray(Bq, float), self.q)
+        return StateSpace(A, B, np.asarray(C, float),
+                          np.asarray(D, float) if feedthrough else np.zeros_like(D), self.dt)
+
+
+def _block_hankel(a: Array, rows: int) -> Array:
+    """Block Hankel matrix of ``a`` (N, k) with ``rows`` block rows: column ``j`` holds
+    ``a[j], ..., a[j + rows - 1]`` stacked, shape (rows k, N - rows + 1)."""
+    n, k = a.shape
+    win = np.lib.stride_tricks.sliding_window_view(a, rows, axis=0)  # (N-rows+1, k, rows)
+    return np.ascontiguousarray(np.transpose(win, (2, 1, 0)).reshape(rows * k, n - rows + 1))
+
+
+def _po_moesp(u: Array, y: Array, rows: int) -> tuple[Array, Array]:
+    """Singular values and right singular vectors of the PO-MOESP observability estimate
+    ``R32 R22^+ [U; Y]`` (``rows`` block rows; ``u`` (N, nu), ``y`` (N, ny))."""
+    uh = _block_hankel(u, rows)
+    yh = _block_hankel(y, rows)
+    z = np.concatenate([uh[:, rows:], uh[:, :-rows], yh[:, :-rows], yh[:, rows:]])
+    _, r = np.linalg.qr(z.T, mode="reduced")
+    low = r.T
+    yr, ur = y.shape[1] * rows, u.shape[1] * rows
+    r32 = low[-yr:, ur:-yr]
+    r22 = low[ur:-yr, ur:-yr]
+    obs = r32 @ np.linalg.pinv(r22) @ np.concatenate([uh, yh])
+    _, s, vh = np.linalg.svd(obs, full_matrices=False)
+    return s, vh
 
 
 # ---------------------------------------------------------------------------------------------

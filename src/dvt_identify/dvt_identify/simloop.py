@@ -31,6 +31,10 @@ within a step sticks if the force needed to hold it is within its dry capacity (
 break-away), else the friction is reversed; a member at rest stays at rest while the holding
 force is within the capacity.
 
+:func:`loop_members_sens` runs the same loop with forward sensitivities (tangents along any
+number of directions, the exact derivative of each step along the branch it takes), which
+:mod:`dvt_identify.sensitivity` feeds; :func:`loop_members` is it without directions.
+
 Compilation happens on the first call of a process and is cached on disk next to this file
 (``__pycache__``), so later processes load machine code in well under a second.
 """
@@ -165,11 +169,71 @@ def _member_accel(A: Array, w: Array, extra: Array, x: Array,
 
 
 @njit(cache=True, nogil=True)
-def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
-                 sc: Array, skind: NDArray[np.int64], spar: Array, sgd: Array, sfc: Array,
-                 dc: Array, dcap: Array, dbrk: Array, dgdf: Array, dfcv: Array,
-                 dcfc: Array) -> Array:  # pragma: no cover - compiled
-    """The step loop for any number of states.
+def smooth_partials(kind: int, p0: float, p1: float, p2: float, s: float
+                    ) -> tuple[float, float, float, float]:
+    """Partial derivatives ``(dg/ds, dg/dp0, dg/dp1, dg/dp2)`` of a coded smooth law's member
+    force ``g`` (:func:`smooth_value`; the stiff laws at their end-of-step speed) at member
+    speed ``s``: the exact derivatives of :mod:`dvt_model.friction`'s laws (0 at ``s = 0`` for
+    an exact sign, where the law is 0 for every parameter)."""
+    if kind == 1:  # -p0 s |s|
+        return -2.0 * p0 * abs(s), -s * abs(s), 0.0, 0.0
+    if kind == 2:  # -p0 |s|
+        sg = 1.0 if s > 0.0 else (-1.0 if s < 0.0 else 0.0)
+        return -p0 * sg, -abs(s), 0.0, 0.0
+    if kind == 3:  # -p0 tanh(s / p1), or -p0 sign(s)
+        if p1 > 0.0:
+            t = np.tanh(s / p1)
+            q = 1.0 - t * t
+            return -p0 * q / p1, -t, p0 * q * s / (p1 * p1), 0.0
+        sg = 1.0 if s > 0.0 else (-1.0 if s < 0.0 else 0.0)
+        return 0.0, -sg, 0.0, 0.0
+    # kind 0: -p0 exp(-(s/p1)^2) sign_eps(s)
+    if p2 > 0.0:
+        e = np.exp(-(s / p1) ** 2)
+        t = np.tanh(s / p2)
+        q = 1.0 - t * t
+        return (-p0 * e * (q / p2 - 2.0 * s / (p1 * p1) * t), -e * t,
+                -p0 * t * e * 2.0 * s * s / (p1 * p1 * p1), p0 * e * q * s / (p2 * p2))
+    if s == 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    sg = 1.0 if s > 0.0 else -1.0
+    e = np.exp(-(s / p1) ** 2)
+    return (2.0 * p0 * abs(s) * e / (p1 * p1), -e * sg,
+            -p0 * sg * e * 2.0 * s * s / (p1 * p1 * p1), 0.0)
+
+
+@njit(cache=True, nogil=True)
+def _project_t(tv: Array, dc: Array, dfcv: Array, tdfcv: Array, tdcfc: Array, sn: float,
+               cfc: float) -> None:  # pragma: no cover - compiled
+    """Tangents (nx, P) of the projection ``x - dfcv (dc . x) / cfc`` (a member brought to
+    rest), in place on ``tv`` (``sn = dc . x`` before the projection; ``tdfcv`` (nx, P) and
+    ``tdcfc`` (P,) the tangents of ``dfcv`` and ``cfc``)."""
+    nx, P = tv.shape
+    for p in range(P):
+        tsn = 0.0
+        for i in range(nx):
+            tsn += dc[i] * tv[i, p]
+        a = tsn / cfc - sn * tdcfc[p] / (cfc * cfc)
+        for i in range(nx):
+            tv[i, p] -= tdfcv[i, p] * sn / cfc + dfcv[i] * a
+
+
+@njit(cache=True, nogil=True)
+def loop_members_sens(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
+                      sc: Array, skind: NDArray[np.int64], spar: Array, sgd: Array, sfc: Array,
+                      dc: Array, dcap: Array, dbrk: Array, dgdf: Array, dfcv: Array,
+                      dcfc: Array, tA: Array, tAd: Array, tx0: Array, tspar: Array,
+                      tsgd: Array, tsfc: Array, tdgdf: Array, tdfcv: Array, tdcfc: Array,
+                      Gd: Array, tGd: Array, tw: Array, tdcap: Array
+                      ) -> tuple[Array, Array]:  # pragma: no cover - compiled
+    """The step loop for any number of states, with forward sensitivities (tangents) along
+    ``P = tx0.shape[1]`` directions (``P = 0``: the states alone).
+
+    The tangent of each step is the exact derivative of the step map with the branch the
+    states take (sliding, crossing zero and sticking, reversing, held at rest, breaking away):
+    the discrete simulation is differentiated, not an approximation of it; a branch switch
+    between two parameter values (the step at which a member sticks) is not a derivative and
+    is not seen, as by a finite difference small enough not to cross it.
 
     Args:
         A, Ad: continuous ``A`` and its ZOH ``Ad``, shape (nx, nx).
@@ -181,20 +245,37 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
         dc, dcap, dbrk, dgdf, dfcv, dcfc: dry members (one per distinct member): vectors
             (nd, nx), capacity per sample (nd, N), break-away (nd,), ``Gd F c`` (nd, nx),
             ``F c`` (nd, nx), ``c . F c`` (nd,).
+        tA, tAd, tx0, tspar, tsgd, tsfc, tdgdf, tdfcv, tdcfc: the tangents of ``A``, ``Ad``
+            (nx, nx, P), ``x0`` (nx, P), the smooth laws' parameters (ns, 3, P) and vectors
+            (ns, nx, P), the dry members' vectors (nd, nx, P) and ``c . F c`` (nd, P): the
+            direction is the last (contiguous) axis.
+        Gd, tGd, tw, tdcap: ``Gd`` (nx, nx), its tangent (nx, nx, P), the tangent of ``w``
+            (N, nx, P) (that of ``d = w Gd^T`` is formed step by step) and of the
+            capacities (N, nd, P).
 
     Returns:
-        States, shape (N, nx).
+        States (N, nx) and their tangents (N, nx, P).
     """
     n, nx = d.shape
     ns = sc.shape[0]
     nd = dc.shape[0]
+    P = tx0.shape[1]
     out = np.empty((n, nx))
+    tout = np.empty((n, nx, P))
     x = x0.copy()
     out[0] = x
     xn = np.empty(nx)
     xp = np.empty(nx)
     extra = np.empty(nx)
     rest = np.zeros(nd, dtype=np.bool_)
+    tx = tx0.copy()
+    txn = np.empty((nx, P))
+    textra = np.empty((nx, P))
+    tt = np.empty(P)
+    tcap = np.empty(P)
+    for i in range(nx):
+        for p in range(P):
+            tout[0, i, p] = tx[i, p]
     for k in range(n - 1):
         # sums in the order of the Python reference loop (bitwise-equal results)
         for i in range(nx):
@@ -203,20 +284,69 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
                 acc += Ad[i, j] * x[j]
             xn[i] = acc + d[k, i]
             extra[i] = 0.0
+        if P > 0:
+            for i in range(nx):
+                for p in range(P):
+                    txn[i, p] = 0.0
+                    textra[i, p] = 0.0
+                for j in range(nx):
+                    a = Ad[i, j]
+                    xj = x[j]
+                    gij = Gd[i, j]
+                    wj = w[k, j]
+                    for p in range(P):
+                        txn[i, p] += (a * tx[j, p] + tAd[i, j, p] * xj + gij * tw[k, j, p]
+                                      + tGd[i, j, p] * wj)
         for m in range(ns):
             if stiff(skind[m], spar[m, 2], spar[m, 1]):
                 continue
-            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], spar[m, 2], _dot(sc[m], x))
+            s = _dot(sc[m], x)
+            tau = smooth_value(skind[m], spar[m, 0], spar[m, 1], spar[m, 2], s)
             if tau != 0.0:
                 for i in range(nx):
                     xn[i] += sgd[m, i] * tau
                     extra[i] += sfc[m, i] * tau
+            if P > 0:
+                gs, g0, g1, g2 = smooth_partials(skind[m], spar[m, 0], spar[m, 1], spar[m, 2],
+                                                 s)
+                for p in range(P):
+                    tt[p] = g0 * tspar[m, 0, p] + g1 * tspar[m, 1, p] + g2 * tspar[m, 2, p]
+                for i in range(nx):
+                    c = gs * sc[m, i]
+                    for p in range(P):
+                        tt[p] += c * tx[i, p]
+                for i in range(nx):
+                    a = sgd[m, i]
+                    b = sfc[m, i]
+                    for p in range(P):
+                        txn[i, p] += tsgd[m, i, p] * tau + a * tt[p]
+                        textra[i, p] += tsfc[m, i, p] * tau + b * tt[p]
         for m in range(ns):  # stiff laws: held at the step's end (module docstring)
             if not stiff(skind[m], spar[m, 2], spar[m, 1]):
                 continue
             kap = _dot(sc[m], sgd[m])
+            b = _dot(sc[m], xn)
             tau = implicit_force(skind[m], spar[m, 0], spar[m, 1], spar[m, 2],
-                                 _dot(sc[m], xn), kap, _dot(sc[m], x))
+                                 b, kap, _dot(sc[m], x))
+            if P > 0:
+                # s+ = b + kap g(s+): dg = (g' (db + dkap g) + g_p dp) / (1 - kap g')
+                gs, g0, g1, g2 = smooth_partials(skind[m], spar[m, 0], spar[m, 1], spar[m, 2],
+                                                 b + kap * tau)
+                r = 1.0 / (1.0 - kap * gs)
+                for p in range(P):
+                    tt[p] = g0 * tspar[m, 0, p] + g1 * tspar[m, 1, p] + g2 * tspar[m, 2, p]
+                for i in range(nx):
+                    c = sc[m, i]
+                    for p in range(P):
+                        tt[p] += gs * c * (txn[i, p] + tsgd[m, i, p] * tau)
+                for p in range(P):
+                    tt[p] *= r
+                for i in range(nx):
+                    a = sgd[m, i]
+                    c = sfc[m, i]
+                    for p in range(P):
+                        txn[i, p] += tsgd[m, i, p] * tau + a * tt[p]
+                        textra[i, p] += tsfc[m, i, p] * tau + c * tt[p]
             for i in range(nx):
                 xn[i] += sgd[m, i] * tau
                 extra[i] += sfc[m, i] * tau
@@ -224,10 +354,19 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
             cap = dcap[g, k]
             cfc = dcfc[g]
             s = _dot(dc[g], x)
+            if P > 0:
+                for p in range(P):
+                    tcap[p] = tdcap[k, g, p]
             if not rest[g] and s != 0.0:
                 tau = -_coulomb(s, cap, 0.0, 0.0)
+                sg = -1.0 if s > 0.0 else 1.0
                 for i in range(nx):
                     xn[i] += dgdf[g, i] * tau
+                if P > 0:
+                    for i in range(nx):
+                        a = dgdf[g, i] * sg
+                        for p in range(P):
+                            txn[i, p] += tdgdf[g, i, p] * tau + a * tcap[p]
                 sn = _dot(dc[g], xn)
                 if (sn > 0.0) != (s > 0.0) or sn == 0.0:
                     # crossed zero: stick if the holding force is within the capacity, else go
@@ -238,14 +377,23 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
                     if abs(ca / cfc) <= cap + dbrk[g]:
                         for i in range(nx):
                             xn[i] = xp[i]
+                        if P > 0:
+                            _project_t(txn, dc[g], dfcv[g], tdfcv[g], tdcfc[g], sn, cfc)
                         rest[g] = True
                     else:
                         for i in range(nx):
                             xn[i] -= 2.0 * dgdf[g, i] * tau
+                        if P > 0:
+                            for i in range(nx):
+                                a = dgdf[g, i] * sg
+                                for p in range(P):
+                                    txn[i, p] -= 2.0 * (tdgdf[g, i, p] * tau + a * tcap[p])
                         sn2 = _dot(dc[g], xn)
                         if (sn2 > 0.0) == (s > 0.0) or sn2 == 0.0:
                             for i in range(nx):
                                 xn[i] -= dfcv[g, i] * sn2 / cfc
+                            if P > 0:
+                                _project_t(txn, dc[g], dfcv[g], tdfcv[g], tdcfc[g], sn2, cfc)
                             rest[g] = True
                 continue
             ca = _member_accel(A, w[k], extra, x, dc[g])
@@ -253,19 +401,81 @@ def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
             if abs(req) <= cap + dbrk[g]:
                 for i in range(nx):
                     xn[i] += dgdf[g, i] * req
+                if P > 0:
+                    # d req = -(d ca / cfc - ca d cfc / cfc^2), d ca = c . (dA x + A dx + dw
+                    # + d extra)
+                    for p in range(P):
+                        tt[p] = ca * tdcfc[g, p] / (cfc * cfc)
+                    for i in range(nx):
+                        c = dc[g, i] / cfc
+                        for p in range(P):
+                            v = tw[k, i, p] + textra[i, p]
+                            for j in range(nx):
+                                v += A[i, j] * tx[j, p] + tA[i, j, p] * x[j]
+                            tt[p] -= c * v
+                    for i in range(nx):
+                        a = dgdf[g, i]
+                        for p in range(P):
+                            txn[i, p] += tdgdf[g, i, p] * req + a * tt[p]
                 sn = _dot(dc[g], xn)
                 for i in range(nx):
                     xn[i] -= dfcv[g, i] * sn / cfc
+                if P > 0:
+                    _project_t(txn, dc[g], dfcv[g], tdfcv[g], tdcfc[g], sn, cfc)
                 rest[g] = True
             else:
                 tau = -cap if ca > 0.0 else cap
+                sg = -1.0 if ca > 0.0 else 1.0
                 for i in range(nx):
                     xn[i] += dgdf[g, i] * tau
+                if P > 0:
+                    for i in range(nx):
+                        a = dgdf[g, i] * sg
+                        for p in range(P):
+                            txn[i, p] += tdgdf[g, i, p] * tau + a * tcap[p]
                 rest[g] = False
         for i in range(nx):
             x[i] = xn[i]
             out[k + 1, i] = xn[i]
-    return out
+        if P > 0:
+            for i in range(nx):
+                for p in range(P):
+                    tx[i, p] = txn[i, p]
+                    tout[k + 1, i, p] = txn[i, p]
+    return out, tout
+
+
+_NO_TANGENTS: dict[tuple[int, int, int, int], tuple[Array, ...]] = {}
+
+
+def no_tangents(nx: int, ns: int, nd: int, n: int) -> tuple[Array, ...]:
+    """The tangent arguments of :func:`loop_members_sens` for no direction (``P = 0``; empty
+    arrays, made once per shape)."""
+    key = (nx, ns, nd, n)
+    hit = _NO_TANGENTS.get(key)
+    if hit is None:
+        if len(_NO_TANGENTS) > 64:
+            _NO_TANGENTS.clear()
+        hit = (np.zeros((nx, nx, 0)), np.zeros((nx, nx, 0)), np.zeros((nx, 0)),
+               np.zeros((ns, 3, 0)), np.zeros((ns, nx, 0)), np.zeros((ns, nx, 0)),
+               np.zeros((nd, nx, 0)), np.zeros((nd, nx, 0)), np.zeros((nd, 0)),
+               np.zeros((nx, nx)), np.zeros((nx, nx, 0)), np.zeros((n, nx, 0)),
+               np.zeros((n, nd, 0)))
+        _NO_TANGENTS[key] = hit
+    return hit
+
+
+def loop_members(A: Array, Ad: Array, w: Array, d: Array, x0: Array,
+                 sc: Array, skind: NDArray[np.int64], spar: Array, sgd: Array, sfc: Array,
+                 dc: Array, dcap: Array, dbrk: Array, dgdf: Array, dfcv: Array,
+                 dcfc: Array, reference: bool = False) -> Array:
+    """The step loop for any number of states without sensitivities (arguments as
+    :func:`loop_members_sens`); states, shape (N, nx). ``reference``: the kernel's source
+    run by the interpreter."""
+    kern = loop_members_sens.py_func if reference else loop_members_sens
+    x, _ = kern(A, Ad, w, d, x0, sc, skind, spar, sgd, sfc, dc, dcap, dbrk, dgdf, dfcv, dcfc,
+                *no_tangents(d.shape[1], sc.shape[0], dc.shape[0], d.shape[0]))
+    return np.asarray(x)
 
 
 @njit(cache=True, nogil=True)
@@ -407,14 +617,25 @@ def first_order_lag(col: Array, e: float) -> Array:  # pragma: no cover - compil
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) both kernels now, on a tiny problem; what a
-    process pays once before its first simulation with member forces."""
+    """Compile (or load from the on-disk cache) the identification's kernels now, on a tiny
+    problem: the step loops (with and without sensitivities), the spline and lag kernels and
+    the linear reference's simulation kernels; what a process pays once before its first
+    identification."""
+    from dvt_identify.reference import warm_up as reference_warm_up
+
+    reference_warm_up()
     z2 = np.zeros((2, 2))
     e2 = np.zeros((0, 2))
     e1 = np.zeros(0)
     ek = np.zeros(0, dtype=np.int64)
     loop_members(z2, z2, z2, z2, np.zeros(2), e2, ek, np.zeros((0, 3)), e2, e2, e2,
                  np.zeros((0, 2)), e1, e2, e2, e1)
+    loop_members_sens(z2, z2, z2, z2, np.zeros(2), e2, ek, np.zeros((0, 3)), e2, e2, e2,
+                      np.zeros((0, 2)), e1, e2, e2, e1, np.zeros((2, 2, 1)), np.zeros((2, 2, 1)),
+                      np.ones((2, 1)), np.zeros((0, 3, 1)), np.zeros((0, 2, 1)),
+                      np.zeros((0, 2, 1)), np.zeros((0, 2, 1)), np.zeros((0, 2, 1)),
+                      np.zeros((0, 1)), z2, np.zeros((2, 2, 1)), np.zeros((2, 2, 1)),
+                      np.zeros((2, 0, 1)))
     loop_scalar(0.0, 1.0, np.zeros(2), np.zeros(2), 0.0, e1, ek, np.zeros((0, 3)), e1,
                 False, np.zeros(2), 0.0, 1.0, 1.0, 0.0)
     spline_load(np.zeros(2), 1e-3, 0.0, 1.0, 1.0, 2)

@@ -13,7 +13,7 @@ within the friction capacity.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -53,6 +53,73 @@ def _zoh(A: Array, dt: float) -> tuple[Array, Array]:
     M[:nx, nx:] = np.eye(nx) * dt
     E = expm(M)
     return np.asarray(E[:nx, :nx]), np.asarray(E[:nx, nx:])
+
+
+def zoh_derivatives(A: Array, dA: Array, dt: float) -> tuple[Array, Array]:
+    """Derivatives of the ZOH along each ``dA[k]`` (stacked (K, nx, nx)): ``dAd``, ``dGd``,
+    each (K, nx, nx); exact.
+
+    With distinct, well-conditioned eigenvalues of ``A = V diag(l) V^-1`` (the usual case) the
+    Daleckii-Krein form ``V (Phi o (V^-1 dA V)) V^-1``, ``Phi`` the divided differences of
+    ``exp(l dt)`` (for ``Ad``) and of ``(exp(l dt) - 1) / l`` (for ``Gd``), for every direction
+    at once; otherwise the Fréchet derivative of ``[[Ad, Gd], [0, I]] = expm([[A dt, I dt],
+    [0, 0]])``, the upper right block of the exponential of ``[[Z, dZ], [0, Z]]``."""
+    nx = A.shape[0]
+    K = len(dA)
+    fast = _zoh_derivatives_eig(A, dA, dt)
+    if fast is not None:
+        return fast
+    X = np.zeros((4 * nx, 4 * nx))
+    X[:nx, :nx] = A * dt
+    X[:nx, nx: 2 * nx] = np.eye(nx) * dt
+    X[2 * nx: 3 * nx, 2 * nx: 3 * nx] = A * dt
+    X[2 * nx: 3 * nx, 3 * nx:] = np.eye(nx) * dt
+    dAd = np.empty((K, nx, nx))
+    dGd = np.empty((K, nx, nx))
+    for k in range(K):
+        X[:nx, 2 * nx: 3 * nx] = dA[k] * dt
+        L = expm(X)[:nx, 2 * nx:]
+        dAd[k], dGd[k] = L[:, :nx], L[:, nx:]
+    return dAd, dGd
+
+
+def _zoh_derivatives_eig(A: Array, dA: Array, dt: float) -> tuple[Array, Array] | None:
+    """:func:`zoh_derivatives` by the eigen decomposition, or ``None`` when ``A`` is not
+    safely diagonalisable (ill-conditioned eigenvectors, eigenvalues within ``1e-6`` of each
+    other relative to the largest, or no finite result)."""
+    try:
+        lam, V = np.linalg.eig(A)
+        if np.linalg.cond(V) > 1e6:
+            return None
+        Vi = np.linalg.inv(V)
+    except np.linalg.LinAlgError:
+        return None
+    z = lam * dt
+    scale = max(float(np.max(np.abs(z))), 1.0)
+    gap = np.abs(z[:, None] - z[None, :]) + np.eye(len(z)) * scale
+    if float(np.min(gap)) < 1e-6 * scale:
+        return None
+    e = np.exp(z)
+    with np.errstate(all="ignore"):
+        g = np.where(np.abs(z) > 1e-8, (e - 1.0) / np.where(z == 0, 1.0, z), 1.0 + 0.5 * z)
+        gp = np.where(np.abs(z) > 1e-4, (z * e - (e - 1.0)) / np.where(z == 0, 1.0, z * z),
+                      0.5 + z / 3.0)
+    dz = z[:, None] - z[None, :]
+    off = ~np.eye(len(z), dtype=bool)
+    phi = np.where(off, (e[:, None] - e[None, :]) / np.where(off, dz, 1.0), np.diag(e))
+    psi = np.where(off, (g[:, None] - g[None, :]) / np.where(off, dz, 1.0), np.diag(gp))
+    # in units of dt: d(e^{A dt}) = dt V (phi o V^-1 dA V) V^-1; Gd = dt g(A dt)
+    E = Vi @ dA @ V  # (K, nx, nx)
+    dAd = dt * (V @ (phi * E) @ Vi)
+    dGd = dt * dt * (V @ (psi * E) @ Vi)
+    if not (np.all(np.isfinite(dAd)) and np.all(np.isfinite(dGd))):
+        return None
+    if np.iscomplexobj(dAd):
+        if (float(np.max(np.abs(dAd.imag), initial=0.0)) > 1e-8 * max(
+                float(np.max(np.abs(dAd.real), initial=0.0)), 1e-300)):
+            return None
+        dAd, dGd = dAd.real, dGd.real
+    return np.ascontiguousarray(dAd, dtype=float), np.ascontiguousarray(dGd, dtype=float)
 
 
 def simulate_linear(Ad: Array, d: Array, x0: Array) -> Array:
@@ -135,6 +202,65 @@ SmoothLaw = tuple[int, float, float, float]
 """A coded smooth member force ``(kind, p0, p1, p2)`` (:mod:`dvt_identify.simloop`)."""
 
 
+@dataclass
+class LoopArrays:
+    """The arrays of the compiled step loop (:func:`dvt_identify.simloop.loop_members_sens`)
+    for one simulation: smooth forces and dry members (grouped by member, capacities added),
+    and for each entry of ``dry`` the group it went to (``group``)."""
+
+    sc: Array
+    skind: NDArray[np.int64]
+    spar: Array
+    sgd: Array
+    sfc: Array
+    dc: Array
+    dcap: Array
+    dbrk: Array
+    dgdf: Array
+    dfcv: Array
+    dcfc: Array
+    group: list[int] = field(default_factory=list)
+
+
+def loop_arrays(Gd: Array, F: Array, n: int, smooth: Sequence[tuple[Array, SmoothLaw]],
+                dry: Sequence[tuple[Array, Array | float, float]]) -> LoopArrays:
+    """Smooth forces and dry members as the kernels take them (``n`` samples; see
+    :func:`simulate_loop` for ``smooth`` and ``dry``)."""
+    nx = Gd.shape[0]
+    groups: dict[tuple[float, ...], list[Any]] = {}
+    order: list[int] = []
+    for c, cap, brk in dry:
+        key = tuple(float(v) for v in c)
+        capv: Array | float = np.asarray(cap, float) if np.ndim(cap) else float(cap)
+        if key in groups:
+            grp = groups[key]
+            grp[0] = grp[0] + capv
+            grp[1] += brk
+            order.append(grp[2])
+        else:
+            groups[key] = [capv, brk, len(groups)]
+            order.append(len(groups) - 1)
+    ns = len(smooth)
+    sc = (np.array([c for c, _ in smooth], dtype=np.float64).reshape(ns, nx) if ns
+          else np.zeros((0, nx)))
+    skind = np.array([int(law[0]) for _, law in smooth], dtype=np.int64)
+    spar = np.array([law[1:4] for _, law in smooth], dtype=np.float64).reshape(ns, 3)
+    sfc = np.ascontiguousarray(sc @ F.T)
+    sgd = np.ascontiguousarray(sfc @ Gd.T)
+    nd = len(groups)
+    dc = (np.array(list(groups), dtype=np.float64).reshape(nd, nx) if nd
+          else np.zeros((0, nx)))
+    dcap = np.empty((nd, n))
+    dbrk = np.empty(nd)
+    for g, (capv, b, _) in enumerate(groups.values()):
+        dcap[g] = capv
+        dbrk[g] = float(b)
+    dfcv = np.ascontiguousarray(dc @ F.T)
+    dgdf = np.ascontiguousarray(dfcv @ Gd.T)
+    dcfc = np.einsum("gx,gx->g", dc, dfcv)
+    return LoopArrays(sc, skind, spar, sgd, sfc, dc, dcap, dbrk, dgdf, dfcv, dcfc, order)
+
+
 def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, x0: Array,
                   smooth: Sequence[tuple[Array, SmoothLaw]],
                   dry: Sequence[tuple[Array, Array | float, float]], reference: bool = False
@@ -158,27 +284,8 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
         States, shape (N, nx).
     """
     n, nx = d.shape
-    groups: dict[tuple[float, ...], list[Any]] = {}
-    for c, cap, brk in dry:
-        key = tuple(float(v) for v in c)
-        capv: Array | float = np.asarray(cap, float) if np.ndim(cap) else float(cap)
-        if key in groups:
-            grp = groups[key]
-            grp[0] = grp[0] + capv
-            grp[1] += brk
-        else:
-            groups[key] = [capv, brk]
-    members = loop_members.py_func if reference else loop_members
+    la = loop_arrays(Gd, F, n, smooth, dry)
     scalar = loop_scalar.py_func if reference else loop_scalar
-    ns = len(smooth)
-    sc = np.array([np.asarray(c, np.float64) for c, _ in smooth],
-                  dtype=np.float64).reshape(ns, nx)
-    skind = np.array([int(law[0]) for _, law in smooth], dtype=np.int64)
-    spar = np.array([[float(law[1]), float(law[2]), float(law[3])] for _, law in smooth],
-                    dtype=np.float64).reshape(ns, 3)
-    GdF = Gd @ F
-    sfc = np.array([F @ c for c in sc], dtype=np.float64).reshape(ns, nx)
-    sgd = np.array([GdF @ c for c in sc], dtype=np.float64).reshape(ns, nx)
     w = np.ascontiguousarray(w, dtype=np.float64)
     d = np.ascontiguousarray(d, dtype=np.float64)
     if nx == 1:
@@ -186,34 +293,58 @@ def simulate_loop(A: Array, Ad: Array, Gd: Array, F: Array, w: Array, d: Array, 
         cap = np.zeros(n)
         brk = 0.0
         gdf_unit = fmap = 1.0
-        for key, (capv, b) in groups.items():
-            c0 = key[0]
-            cap = cap + abs(c0) * np.broadcast_to(np.asarray(capv, float), (n,))
-            brk += abs(c0) * float(b)
+        for g in range(la.dc.shape[0]):
+            c0 = float(la.dc[g, 0])
+            cap = cap + abs(c0) * la.dcap[g]
+            brk += abs(c0) * float(la.dbrk[g])
             fc = float(F[0, 0]) * c0
             gdf_unit = float(Gd[0, 0]) * fc / c0
             fmap = fc / c0
         extra0 = sum(smooth_value(int(k), float(p[0]), float(p[1]), float(p[2]), 0.0)
                      * float(c[0])
-                     for k, p, c in zip(skind, spar, sc, strict=True))
+                     for k, p, c in zip(la.skind, la.spar, la.sc, strict=True))
         x = scalar(float(A[0, 0]), float(Ad[0, 0]), w[:, 0].copy(), d[:, 0].copy(),
-                   float(x0[0]), sc[:, 0].copy(), skind, spar, sgd[:, 0].copy(), bool(groups),
-                   np.ascontiguousarray(cap), float(brk), gdf_unit, fmap, float(extra0))
+                   float(x0[0]), la.sc[:, 0].copy(), la.skind, la.spar, la.sgd[:, 0].copy(),
+                   bool(dry), np.ascontiguousarray(cap), float(brk), gdf_unit, fmap,
+                   float(extra0))
         return np.asarray(x, dtype=float)[:, None]
-    nd = len(groups)
-    dc = np.array([np.array(key) for key in groups], dtype=np.float64).reshape(nd, nx)
-    dcap = np.empty((nd, n))
-    dbrk = np.empty(nd)
-    for g, (capv, b) in enumerate(groups.values()):
-        dcap[g] = np.broadcast_to(np.asarray(capv, float), (n,))
-        dbrk[g] = float(b)
-    dfcv = np.array([F @ c for c in dc], dtype=np.float64).reshape(nd, nx)
-    dgdf = np.array([Gd @ f for f in dfcv], dtype=np.float64).reshape(nd, nx)
-    dcfc = np.array([float(c @ f) for c, f in zip(dc, dfcv, strict=True)], dtype=np.float64)
-    return np.asarray(members(np.ascontiguousarray(A, np.float64),
-                              np.ascontiguousarray(Ad, np.float64), w, d,
-                              np.array(x0, np.float64), sc, skind, spar, sgd, sfc, dc, dcap,
-                              dbrk, dgdf, dfcv, dcfc), dtype=np.float64)
+    return loop_members(np.ascontiguousarray(A, np.float64),
+                        np.ascontiguousarray(Ad, np.float64), w, d, np.array(x0, np.float64),
+                        la.sc, la.skind, la.spar, la.sgd, la.sfc, la.dc, la.dcap, la.dbrk,
+                        la.dgdf, la.dfcv, la.dcfc, reference=reference)
+
+
+@dataclass
+class Prepared:
+    """One simulation's parts before the step loop (:meth:`OEModel.prepare`).
+
+    Attributes:
+        dt: sample time [s].
+        A, B, F, Ad, Gd: the linear part and its ZOH.
+        ps: each effect's parameters.
+        u: the transformed inputs (N, nu); view: what the effects saw.
+        w, d: generalised input (N, nx) and its ZOH response ``w @ Gd.T``.
+        forces: (effect index, exogenous force (N,)) of each effect that has one.
+        smooth, smooth_of: the smooth member laws and the effect of each.
+        dry, dry_of: the dry members (member, capacity, break-away) and the effect of each.
+    """
+
+    dt: float
+    A: Array
+    B: Array
+    F: Array
+    Ad: Array
+    Gd: Array
+    ps: list[Array]
+    u: Array
+    view: SegmentView
+    w: Array
+    d: Array
+    forces: list[tuple[int, Array]]
+    smooth: list[tuple[Array, SmoothLaw]]
+    smooth_of: list[int]
+    dry: list[tuple[Array, Array | float, float]]
+    dry_of: list[int]
 
 
 class OEModel:
@@ -278,31 +409,72 @@ class OEModel:
         Raises:
             FitError: ``theta`` or ``x0`` has the wrong length.
         """
-        if theta.shape != (len(self.specs),):
-            raise FitError(f"theta: expected shape ({len(self.specs)},), got {theta.shape}")
+        self._check_x0(x0)
+        pr = self.prepare(theta, seg)
+        if pr.smooth or pr.dry:
+            x = simulate_loop(pr.A, pr.Ad, pr.Gd, pr.F, pr.w, pr.d, np.asarray(x0, float),
+                              pr.smooth, pr.dry)
+        else:
+            x = simulate_linear(pr.Ad, pr.d, np.asarray(x0, float))
+        return x, self.outputs(pr, x)
+
+    def _check_x0(self, x0: Array) -> None:
         if np.shape(x0) != (self.nx,):
             raise FitError(f"x0: expected shape ({self.nx},), got {np.shape(x0)}")
-        A, B, F, Ad, Gd = self._linear(theta, seg.dt)
-        ps = self.effect_params(theta)
+
+    def outputs(self, pr: Prepared, x: Array) -> Array:
+        """Outputs (N, ny) of states ``x`` (N, nx): ``y = C x`` then the effects' output maps
+        at the parameters of ``pr``."""
+        y = x if self.C is None else x @ self.C.T
+        for e, p in zip(self.effects, pr.ps, strict=True):
+            yt = e.output_transform(p, y, pr.dt)
+            if yt is not None:
+                y = yt
+        return y
+
+    def transformed_inputs(self, ps: Sequence[Array], seg: Segment) -> Array:
+        """The inputs (N, nu) after every effect's input transform (in order) at the effect
+        parameters ``ps``."""
         u = seg.u
         for e, p in zip(self.effects, ps, strict=True):
             ut = e.input_transform(p, u, seg.dt)
             if ut is not None:
                 u = ut
+        return u
+
+    def prepare(self, theta: Array, seg: Segment) -> Prepared:
+        """Everything a simulation of ``seg`` at ``theta`` needs before the step loop: the
+        linear part and its ZOH, the transformed inputs, each effect's exogenous force,
+        smooth law and dry capacity, the generalised input ``w`` and its ZOH response ``d``.
+
+        Raises:
+            FitError: ``theta`` has the wrong length.
+            DivergedError: the linear part cannot be simulated (:meth:`_linear`).
+        """
+        if theta.shape != (len(self.specs),):
+            raise FitError(f"theta: expected shape ({len(self.specs)},), got {theta.shape}")
+        A, B, F, Ad, Gd = self._linear(theta, seg.dt)
+        ps = self.effect_params(theta)
+        u = self.transformed_inputs(ps, seg)
         # effects see the transformed inputs (a brake's capacity follows its engagement lag)
         view = SegmentView(seg.dt, u, seg.y, seg.angles)
         w = u @ B.T
+        forces: list[tuple[int, Array]] = []
         smooth: list[tuple[Array, SmoothLaw]] = []
+        smooth_of: list[int] = []
         dry: list[tuple[Array, Array | float, float]] = []
+        dry_of: list[int] = []
         brk: dict[tuple[float, ...], float] = {}
-        for e, p in zip(self.effects, ps, strict=True):
+        for i, (e, p) in enumerate(zip(self.effects, ps, strict=True)):
             f = e.exogenous_force(p, view)
             if f is not None and e.member is not None:
                 w = w + np.outer(f, F @ e.member)
+                forces.append((i, np.asarray(f, float)))
             if e.state_dependent and e.member is not None:
                 law = e.smooth_law(p)
                 if law is not None:
                     smooth.append((e.member, law))
+                    smooth_of.append(i)
                 b = e.breakaway(p)
                 if b:
                     key = tuple(float(v) for v in e.member)
@@ -310,6 +482,7 @@ class OEModel:
                 cap = e.dry_capacity(p, view)
                 if cap is not None:
                     dry.append((e.member, cap, 0.0))
+                    dry_of.append(i)
         if brk and dry:
             used: set[tuple[float, ...]] = set()
             with_brk = []
@@ -318,17 +491,9 @@ class OEModel:
                 with_brk.append((c, cap, 0.0 if key in used else brk.get(key, 0.0)))
                 used.add(key)
             dry = with_brk
-        d = w @ Gd.T
-        if smooth or dry:
-            x = simulate_loop(A, Ad, Gd, F, w, d, np.asarray(x0, float), smooth, dry)
-        else:
-            x = simulate_linear(Ad, d, np.asarray(x0, float))
-        y = x if self.C is None else x @ self.C.T
-        for e, p in zip(self.effects, ps, strict=True):
-            yt = e.output_transform(p, y, seg.dt)
-            if yt is not None:
-                y = yt
-        return x, y
+        return Prepared(dt=seg.dt, A=A, B=B, F=F, Ad=Ad, Gd=Gd, ps=ps, u=u, view=view, w=w,
+                        d=w @ Gd.T, forces=forces, smooth=smooth, smooth_of=smooth_of,
+                        dry=dry, dry_of=dry_of)
 
     def _linear(self, theta: Array, dt: float) -> tuple[Array, Array, Array, Array, Array]:
         """``A``, ``B``, ``F`` of the structure at ``theta`` and the ZOH ``Ad``, ``Gd`` at ``dt``.

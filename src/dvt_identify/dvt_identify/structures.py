@@ -141,6 +141,14 @@ class ParamMatrix:
             out[i, j] += c * theta[k]
         return out
 
+    def derivative(self, p: int) -> Array:
+        """``d M / d theta`` for ``p`` parameters, shape (p, nr, nc) (the matrix is linear in
+        its parameters: the coefficients of each)."""
+        out = np.zeros((p, *self.shape))
+        for i, j, c, k in self.terms:
+            out[k, i, j] += c
+        return out
+
 
 def equation_error_ab(segments: Sequence[Segment], cutoff_fraction: float = 0.04
                       ) -> tuple[Array, Array]:
@@ -221,6 +229,7 @@ class LinearStructureBase:
             r = np.concatenate([((A - A_ls) / na).ravel(), ((B - B_ls) / nb).ravel()])
             return np.asarray(np.nan_to_num(r, nan=PENALTY, posinf=PENALTY,
                                             neginf=-PENALTY))
+
         lo = np.array([p.lower for p in self.params])
         hi = np.array([p.upper for p in self.params])
         try:
@@ -271,6 +280,13 @@ class StateSpaceStructure(LinearStructureBase):
         F = np.eye(nx) if self._F is None else self._F(theta)
         return self._A(theta), self._B(theta), F
 
+    def derivatives(self, theta: Array) -> tuple[Array, Array, Array]:
+        """``dA``, ``dB``, ``dF`` by every parameter (the entries are linear in them)."""
+        p = len(self.params)
+        nx = len(self.state_names)
+        dF = np.zeros((p, nx, nx)) if self._F is None else self._F.derivative(p)
+        return self._A.derivative(p), self._B.derivative(p), dF
+
 
 class MechanicalStructure(LinearStructureBase):
     """``M x' = -D x + Q u + tau``: ``A = -M^-1 D``, ``B = M^-1 Q``, ``F = M^-1``.
@@ -294,6 +310,17 @@ class MechanicalStructure(LinearStructureBase):
         """``(-M^-1 D, M^-1 Q, M^-1)``; raises ``LinAlgError`` for a singular ``M``."""
         Minv = np.asarray(np.linalg.inv(self._M(theta)), dtype=float)
         return -Minv @ self._D(theta), Minv @ self._Q(theta), Minv
+
+    def derivatives(self, theta: Array) -> tuple[Array, Array, Array]:
+        """``dA``, ``dB``, ``dF`` by every parameter, shapes (p, nx, nx), (p, nx, nu),
+        (p, nx, nx): ``d M^-1 = -M^-1 dM M^-1``; raises ``LinAlgError`` for a singular
+        ``M``."""
+        p = len(self.params)
+        Minv = np.asarray(np.linalg.inv(self._M(theta)), dtype=float)
+        dMinv = -Minv @ self._M.derivative(p) @ Minv
+        D, Q = self._D(theta), self._Q(theta)
+        return (-(dMinv @ D) - Minv @ self._D.derivative(p),
+                dMinv @ Q + Minv @ self._Q.derivative(p), dMinv)
 
 
 class SpringMechanicalStructure(LinearStructureBase):
@@ -387,6 +414,23 @@ class SpringMechanicalStructure(LinearStructureBase):
         F[n:, n:] = Minv
         return A, B, F
 
+    def derivatives(self, theta: Array) -> tuple[Array, Array, Array]:
+        """``dA``, ``dB``, ``dF`` by every parameter (``d M^-1 = -M^-1 dM M^-1``); raises
+        ``LinAlgError`` for a singular ``M``."""
+        n = len(self.members)
+        p = len(self.params)
+        Minv = np.asarray(np.linalg.inv(self._M(theta)), dtype=float)
+        dMinv = -Minv @ self._M.derivative(p) @ Minv
+        K, D, Q = self._K(theta), self._D(theta), self._Q(theta)
+        dA = np.zeros((p, 2 * n, 2 * n))
+        dA[:, n:, :n] = -(dMinv @ K) - Minv @ self._K.derivative(p)
+        dA[:, n:, n:] = -(dMinv @ D) - Minv @ self._D.derivative(p)
+        dB = np.zeros((p, 2 * n, len(self.input_names)))
+        dB[:, n:] = dMinv @ Q + Minv @ self._Q.derivative(p)
+        dF = np.zeros((p, 2 * n, 2 * n))
+        dF[:, n:, n:] = dMinv
+        return dA, dB, dF
+
     def initial_state(self, y0: Array) -> Array:
         """A start for the initial state from the first measured outputs ``y0`` (ny,): measured
         states as measured, unmeasured speeds at the mean measured speed, unmeasured angles
@@ -432,6 +476,35 @@ class SpringMechanicalStructure(LinearStructureBase):
         except (np.linalg.LinAlgError, ValueError):
             pass
         return out
+
+
+def matrix_derivatives(structure: ModelStructure, theta: Array, step: float = 1e-6
+                       ) -> tuple[Array, Array, Array]:
+    """``dA``, ``dB``, ``dF`` of ``structure.matrices`` by every parameter, shapes (p, nx, nx),
+    (p, nx, nu), (p, nx, nx): the structure's own ``derivatives`` when it has them (exact),
+    else central differences with relative step ``step``.
+
+    Raises:
+        np.linalg.LinAlgError, ValueError: the matrices cannot be formed at ``theta``.
+    """
+    fn = getattr(structure, "derivatives", None)
+    if fn is not None:
+        dA, dB, dF = fn(np.asarray(theta, float))
+        return np.asarray(dA, float), np.asarray(dB, float), np.asarray(dF, float)
+    th = np.asarray(theta, float)
+    cols = []
+    for j in range(th.size):
+        h = step * max(abs(float(th[j])), 1e-8)
+        tp, tm = th.copy(), th.copy()
+        tp[j] += h
+        tm[j] -= h
+        mp, mm = structure.matrices(tp), structure.matrices(tm)
+        cols.append([(a - b) / (2 * h) for a, b in zip(mp, mm, strict=True)])
+    A, B, F = structure.matrices(th)
+    if not cols:
+        return np.zeros((0, *A.shape)), np.zeros((0, *B.shape)), np.zeros((0, *F.shape))
+    return (np.stack([c[0] for c in cols]), np.stack([c[1] for c in cols]),
+            np.stack([c[2] for c in cols]))
 
 
 def output_names(structure: ModelStructure) -> tuple[str, ...]:

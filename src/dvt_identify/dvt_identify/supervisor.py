@@ -13,6 +13,17 @@ States (:class:`State`)::
                                                          watching --worse--> rolling_back
       rolling_back --rollback_done--> idle                              [outcome "rolled_back"]
 
+Two refit stages (:data:`STAGE_EFFECTS` first, then :data:`STAGE_FULL`): the first refit
+(``stage`` of :class:`RequestFit`: ``"effects"``) comes ``min_post_change_s`` after the change,
+on a few seconds of data: the caller holds the model in use's structure (its mass and damping)
+and looks for the effect that changed on top of it - the parameters that change first (a
+friction step, a windage) - which a few seconds determine, while the structure's own
+parameters they do not. If that refit is not pushed (not better, suspect, or failed on the
+data) and ``full_post_change_s`` > 0, the supervisor waits until ``full_post_change_s`` of
+post-change data exist and requests the full refit (``"full"``: everything free, validated on
+``full_validation_s``) in the same episode; its decision ends the episode. A refit whose
+process crashed (``FitOutcome.crashed``) ends the episode at once: outcome ``refit_crashed``.
+
 * **waiting**: the estimation data start ``settle_s`` after the alarm's estimated change time,
   but not before the detection (``stamp_s``: the estimated change time can be seconds early);
   the supervisor waits until ``min_post_change_s - settle_s`` of data after that start
@@ -20,7 +31,8 @@ States (:class:`State`)::
   come from one regime).
 * **refitting**: :class:`RequestFit` names the estimation window ``[start,
   now - validation_s]`` (at most ``max_estimation_s``, the newest part) and the validation window
-  ``[now - validation_s, now]`` (the newest held-out slice), ROS time [s]. The caller fits on the
+  ``[now - validation_s, now]`` (the newest held-out slice), ROS time [s]; for the full stage
+  ``full_validation_s`` instead of ``validation_s``. The caller fits on the
   estimation window, simulates the new and the current model on the validation window and calls
   :meth:`Supervisor.fit_done` with both error series (:class:`FitOutcome`).
 * **deciding**: push only if the new model's validation error beats the current one's on the
@@ -49,13 +61,11 @@ Times are ROS time [s] (the residual's stamps and the node clock); residuals [ra
 
 from __future__ import annotations
 
-import json
 import math
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -66,6 +76,10 @@ from dvt_identify.uncertainty import diebold_mariano
 
 PREFIX = "supervisor"
 """Prefix of the identifier-node parameters of the supervisor (``supervisor.watch_s``...)."""
+STAGE_EFFECTS = "effects"
+"""The first refit of an episode: effects on top of the model in use, its structure held."""
+STAGE_FULL = "full"
+"""The second refit (if the first was not pushed): every parameter free, on a longer window."""
 
 
 class State(StrEnum):
@@ -84,9 +98,11 @@ class SupervisorConfig:
     """Settings [s unless stated]; :meth:`validated` checks them (errors name
     ``supervisor.<field>`` and the value)."""
 
-    min_post_change_s: float = 60.0
-    settle_s: float = 1.0
-    validation_s: float = 15.0
+    min_post_change_s: float = 5.0
+    settle_s: float = 0.5
+    validation_s: float = 1.5
+    full_post_change_s: float = 60.0
+    full_validation_s: float = 15.0
     max_estimation_s: float = 300.0
     alpha: float = 0.05
     min_relative_gain: float = 0.1
@@ -118,12 +134,19 @@ class SupervisorConfig:
                      "push_timeout_s", "watch_s", "baseline_s"):
             need(name, num(name) > 0, "a time > 0 s")
         for name in ("settle_s", "watch_settle_s", "min_relative_gain", "rollback_tolerance",
-                     "suspect_min_relative_gain"):
+                     "suspect_min_relative_gain", "full_post_change_s", "full_validation_s"):
             need(name, num(name) >= 0, "a number >= 0")
         need("alpha", 0 < num("alpha") < 1, "a significance level in (0, 1)")
         need("min_post_change_s", self.min_post_change_s > self.settle_s + self.validation_s,
              f"more than settle_s + validation_s = {self.settle_s + self.validation_s:g} s "
              "(some estimation data must remain)")
+        if self.full_post_change_s > 0:
+            need("full_post_change_s", self.full_post_change_s > max(
+                self.min_post_change_s, self.settle_s + self.full_validation_s),
+                f"0 (no full refit) or more than min_post_change_s = "
+                f"{self.min_post_change_s:g} s and settle_s + full_validation_s = "
+                f"{self.settle_s + self.full_validation_s:g} s")
+            need("full_validation_s", self.full_validation_s > 0, "a time > 0 s")
         need("watch_s", self.watch_s > self.watch_settle_s,
              f"more than watch_settle_s = {self.watch_settle_s:g} s")
         need("min_watch_samples", isinstance(self.min_watch_samples, int)
@@ -156,12 +179,15 @@ class Diagnostic:
 @dataclass(frozen=True)
 class RequestFit:
     """Fit on ``estimation`` = (t0, t1), validate on ``validation`` = (t1, t2) [s, ROS time];
-    the changed outputs are ``outputs``. Answer with :meth:`Supervisor.fit_done`."""
+    the changed outputs are ``outputs``; ``stage`` :data:`STAGE_EFFECTS` (hold the model in
+    use's structure, fit the effects on top of it) or :data:`STAGE_FULL` (everything free).
+    Answer with :meth:`Supervisor.fit_done`."""
 
     episode: int
     estimation: tuple[float, float]
     validation: tuple[float, float]
     outputs: tuple[str, ...]
+    stage: str = STAGE_EFFECTS
 
 
 @dataclass(frozen=True)
@@ -204,7 +230,8 @@ class FitOutcome:
     refit found (changed effects/parameters, fit figures) for the report - its
     ``structure_at_bounds`` (a list of ``"M22 = 1e-06 at its lower bound 1e-06"``) makes the
     supervisor refuse the push unless it is clearly better (``suspect_min_relative_gain``);
-    ``error``: non-empty if the fit failed (then the arrays may be empty).
+    ``error``: non-empty if the fit failed (then the arrays may be empty); ``crashed``: the
+    refit's process died (a crash, a kill) instead of answering (``error`` says how).
     """
 
     new_errors: ArrayLike = ()
@@ -213,6 +240,7 @@ class FitOutcome:
     current_parameters: Mapping[str, Any] = field(default_factory=dict)
     summary: Mapping[str, Any] = field(default_factory=dict)
     error: str = ""
+    crashed: bool = False
 
 
 # --------------------------------------------------------------------------- live residual
@@ -273,7 +301,10 @@ class Supervisor:
     the current and the new model [rad/s]), ``test`` (Diebold-Mariano figures), ``pushed``,
     ``push_s``, ``live_before``/``live_after``/``expected`` (RMS per output [rad/s]),
     ``live_ratio``, ``rolled_back``, ``outcome``, ``reason``, ``timings`` [s] and ``steps``
-    (every transition: time, state, message).
+    (every transition: time, state, message); ``stage`` (the last refit's, :data:`STAGE_EFFECTS`
+    or :data:`STAGE_FULL`) and ``stages`` (per refit: ``stage``, ``estimation``, ``validation``,
+    ``refit``, ``error_before``, ``error_after``, ``test``, ``decision``, ``reason``,
+    ``fit_s``); ``estimation`` ... ``test`` are the last refit's.
     """
 
     def __init__(self, config: SupervisorConfig | None = None) -> None:
@@ -289,6 +320,7 @@ class Supervisor:
         self._detected = 0.0
         self._push_s = 0.0
         self._fit: FitOutcome | None = None
+        self._stage = STAGE_EFFECTS
         self.ignore_before_s = -math.inf
         """Alarms detected before this time [s] are ignored (the node sets its start: the
         alarm topic is latched, a restarted identifier must not refit old changes)."""
@@ -354,9 +386,11 @@ class Supervisor:
                 "refit": None, "error_before": None, "error_after": None, "test": None,
                 "pushed": False, "push_s": None, "live_before": None, "live_after": None,
                 "expected": None, "live_ratio": None, "rolled_back": False, "outcome": None,
-                "reason": "", "timings": {"alarm_s": now_s}, "steps": []}
+                "reason": "", "timings": {"alarm_s": now_s}, "steps": [],
+                "stage": STAGE_EFFECTS, "stages": []}
             self._change = change
             self._detected = float(a["stamp_s"])
+            self._stage = STAGE_EFFECTS
             return [self._step(now_s, State.WAITING,
                                f"change on {name or '?'} at {change:.3f} s; waiting "
                                f"{self.config.min_post_change_s:g} s of post-change data",
@@ -372,6 +406,7 @@ class Supervisor:
                 self._change = change
                 self._detected = float(a["stamp_s"])
             ep["estimation_start_s"] = self._change
+            self._stage = STAGE_EFFECTS  # another regime: the first refit again
             return [self._step(now_s, State.WAITING,
                                f"another change on {name or '?'} at {change:.3f} s; waiting "
                                "restarts from it", change_s=f"{self._change:.3f}")]
@@ -389,18 +424,23 @@ class Supervisor:
             # the estimated change time can be seconds early (a CUSUM with a small k): the
             # estimation data start at the detection at the earliest
             start = max(self._change + c.settle_s, self._detected)
-            if now_s >= start - c.settle_s + c.min_post_change_s:
-                t_val = now_s - c.validation_s
+            full = self._stage == STAGE_FULL
+            post = c.full_post_change_s if full else c.min_post_change_s
+            if now_s >= start - c.settle_s + post:
+                t_val = now_s - (c.full_validation_s if full else c.validation_s)
                 t_est = max(start, t_val - c.max_estimation_s)
                 ep["estimation"] = (t_est, t_val)
                 ep["validation"] = (t_val, now_s)
+                ep["stage"] = self._stage
                 ep["timings"]["waiting_s"] = now_s - ep["timings"]["alarm_s"]
                 ep["timings"]["fit_start_s"] = now_s
+                what = ("full refit (every parameter free)" if full else
+                        "refitting the effects on the model in use (its structure held)")
                 return [self._step(now_s, State.REFITTING,
-                                   f"refitting on [{t_est:.3f}, {t_val:.3f}] s, validating on "
-                                   f"[{t_val:.3f}, {now_s:.3f}] s"),
+                                   f"{what} on [{t_est:.3f}, {t_val:.3f}] s, validating on "
+                                   f"[{t_val:.3f}, {now_s:.3f}] s", stage=self._stage),
                         RequestFit(ep["episode"], (t_est, t_val), (t_val, now_s),
-                                   tuple(ep["outputs"]))]
+                                   tuple(ep["outputs"]), self._stage)]
         elif self.state is State.REFITTING and now_s - self._since > c.fit_timeout_s:
             return self._finish(now_s, "fit_timeout",
                                 f"no fit result within {c.fit_timeout_s:g} s", 2)
@@ -422,16 +462,23 @@ class Supervisor:
         ep = self._ep
         ep["timings"]["fit_s"] = now_s - ep["timings"]["fit_start_s"]
         ep["refit"] = dict(outcome.summary)
+        ep["error_before"] = ep["error_after"] = ep["test"] = None
+        ep["stages"].append({"stage": self._stage, "estimation": ep["estimation"],
+                             "validation": ep["validation"], "refit": ep["refit"],
+                             "fit_s": ep["timings"]["fit_s"]})
+        if outcome.crashed:
+            return self._decided(now_s, "refit_crashed", outcome.error or "the refit's process "
+                                 "died", 2, final=True)
         if outcome.error:
-            return self._finish(now_s, "fit_failed", outcome.error, 2)
+            return self._decided(now_s, "fit_failed", outcome.error, 2)
         new = np.asarray(outcome.new_errors, dtype=float)
         cur = np.asarray(outcome.current_errors, dtype=float)
         ny = len(self.config.names)
         if new.ndim != 2 or new.shape != cur.shape or new.shape[1] != ny or new.shape[0] < 10 \
                 or not (np.isfinite(new).all() and np.isfinite(cur).all()):
-            return self._finish(now_s, "fit_failed", f"validation errors: expected two finite "
-                                f"(N >= 10, {ny}) arrays of the same shape, got {new.shape} "
-                                f"and {cur.shape}", 2)
+            return self._decided(now_s, "fit_failed", f"validation errors: expected two finite "
+                                 f"(N >= 10, {ny}) arrays of the same shape, got {new.shape} "
+                                 f"and {cur.shape}", 2)
         ep["error_before"] = dict(zip(self.config.names, _rms(cur), strict=True))
         ep["error_after"] = dict(zip(self.config.names, _rms(new), strict=True))
         ms = np.mean(cur * cur, axis=0)
@@ -440,28 +487,50 @@ class Supervisor:
         ep["test"] = {"gain": cmp.gain, "stat": cmp.stat, "p_value": cmp.p_value,
                       "relative_gain": cmp.relative_gain, "bandwidth": cmp.bandwidth,
                       "alpha": self.config.alpha}
+        ep["stages"][-1].update(error_before=ep["error_before"], error_after=ep["error_after"],
+                                test=ep["test"])
         better = cmp.p_value < self.config.alpha and \
             cmp.relative_gain >= self.config.min_relative_gain
         at_bound = [str(x) for x in outcome.summary.get("structure_at_bounds") or []]
         bound_note = f"; structure at a bound: {'; '.join(at_bound)}" if at_bound else ""
         if not better:
-            return self._finish(now_s, "not_better",
-                                f"new model not significantly better on validation (p = "
-                                f"{cmp.p_value:.3g}, relative gain {cmp.relative_gain:.3g})"
-                                + bound_note)
+            return self._decided(now_s, "not_better",
+                                 f"new model not significantly better on validation (p = "
+                                 f"{cmp.p_value:.3g}, relative gain {cmp.relative_gain:.3g})"
+                                 + bound_note)
         if at_bound and cmp.relative_gain < self.config.suspect_min_relative_gain:
-            return self._finish(now_s, "suspect",
-                                f"new model better on validation (p = {cmp.p_value:.3g}, "
-                                f"relative gain {cmp.relative_gain:.3g}) but not pushed: its "
-                                f"structure ended at a bound ({'; '.join(at_bound)}) and the "
-                                f"gain is below suspect_min_relative_gain "
-                                f"{self.config.suspect_min_relative_gain:g}", 1)
+            return self._decided(now_s, "suspect",
+                                 f"new model better on validation (p = {cmp.p_value:.3g}, "
+                                 f"relative gain {cmp.relative_gain:.3g}) but not pushed: its "
+                                 f"structure ended at a bound ({'; '.join(at_bound)}) and the "
+                                 f"gain is below suspect_min_relative_gain "
+                                 f"{self.config.suspect_min_relative_gain:g}", 1)
         self._fit = outcome
+        ep["stages"][-1].update(decision="push", reason="better on validation")
         return [self._step(now_s, State.PUSHING,
                            f"new model better on validation (p = {cmp.p_value:.3g}, relative "
                            f"gain {cmp.relative_gain:.3g}){bound_note}; pushing",
                            p_value=cmp.p_value),
                 Push(ep["episode"], dict(outcome.new_parameters))]
+
+    def _decided(self, now_s: float, outcome: str, reason: str, level: int = 0,
+                 final: bool = False) -> list[Action]:
+        """A refit that is not pushed: the episode ends with ``outcome``, unless it was the
+        first stage (and not ``final``) and a full refit is configured; then the supervisor
+        waits for ``full_post_change_s`` of post-change data."""
+        ep = self._ep
+        if ep is None:  # pragma: no cover - guarded by the states
+            return []
+        ep["stages"][-1].update(decision=outcome, reason=reason)
+        c = self.config
+        if final or self._stage == STAGE_FULL or c.full_post_change_s <= 0:
+            return self._finish(now_s, outcome, reason, level)
+        self._stage = STAGE_FULL
+        return [self._step(now_s, State.WAITING,
+                           f"first refit ({STAGE_EFFECTS}, structure held) not pushed: "
+                           f"{outcome} ({reason}); waiting for {c.full_post_change_s:g} s of "
+                           "post-change data for the full refit", min(level, 1),
+                           stage=STAGE_FULL)]
 
     def push_done(self, ok: bool, now_s: float, error: str = "") -> list[Action]:
         """The push's outcome; on success the watch starts."""
@@ -552,167 +621,6 @@ class Supervisor:
         return out
 
 
-# ------------------------------------------------------------- the refit (node's worker thread)
-@dataclass(frozen=True)
-class RefitSettings:
-    """How the node's worker refits an episode's window (the CLI's identification, bounded):
-    ``description`` (bundled name or YAML), ``augment`` (the residual-tracing loop), ``starts``
-    (multi-start count, ``None``: the description's), ``fit_decimate`` (``None``: the
-    description's), ``plots`` (PNG plots in the episode's report), ``from_model`` (start the
-    baseline fit from the model in use, :func:`dvt_identify.pipeline.model_initial`; the
-    description's initial values stay a further start)."""
-
-    description: str = "dvt"
-    augment: bool = True
-    starts: int | None = 1
-    fit_decimate: int | None = None
-    plots: bool = False
-    from_model: bool = True
-
-
-MIN_WINDOW_SAMPLES = 100
-"""Fewest samples of the estimation or the validation part of a snapshot."""
-
-
-def plain_value(value: Any) -> Any:
-    """A parameter value as plain Python (``array.array``/numpy/tuples as lists of floats)."""
-    if isinstance(value, str | bool | int | float) or value is None:
-        return value
-    if isinstance(value, np.ndarray | Sequence) or hasattr(value, "tolist"):
-        return [float(v) for v in value]
-    return value
-
-
-def validation_errors(values: Mapping[str, Any], stamps_ns: ArrayLike, speeds: ArrayLike,
-                      currents: ArrayLike) -> np.ndarray:
-    """Output errors (N, 2) [rad/s] = measured - predicted of the model node's predictor built
-    from ``values`` (model-node parameters, as :func:`dvt_model.config.build_predictor`), run
-    over the samples from the first one on, exactly as the live node computes its residual.
-
-    Raises:
-        dvt_model.errors.DvtModelError: ``values`` the model node would refuse.
-    """
-    from dvt_model.config import build_predictor
-
-    predictor, _ = build_predictor(values)
-    stamps = np.asarray(stamps_ns, dtype=np.int64)
-    w = np.asarray(speeds, dtype=float)
-    u = np.asarray(currents, dtype=float)
-    out = np.empty((stamps.shape[0], 2))
-    for i in range(stamps.shape[0]):
-        p = predictor.update(int(stamps[i]) * 1e-9, float(u[i, 0]), u[i, 1:4], w[i])
-        out[i] = p.residual
-    return out
-
-
-def _changes(current: Mapping[str, Any], new: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """What the push would change: ``{"parameter", "before", "after"}`` per differing value."""
-    out = []
-    for key, after in new.items():
-        before = current.get(key)
-        if plain_value(before) in (None, [], "") and plain_value(after) in (None, [], ""):
-            continue
-        if key == "effects":
-            def kinds(text: Any) -> list[str]:
-                try:
-                    return [str(t.get("kind")) for t in json.loads(str(text or "[]"))]
-                except (ValueError, AttributeError):
-                    return []
-
-            if str(before or "") != str(after):
-                out.append({"parameter": key, "before": kinds(before), "after": kinds(after),
-                            "terms": str(after)})
-            continue
-        b, a = plain_value(before), plain_value(after)
-        if b != a:
-            out.append({"parameter": key, "before": b, "after": a})
-    return out
-
-
-def refit(snapshot: str | Path, request: RequestFit, current: Mapping[str, Any],
-          work_dir: str | Path, settings: RefitSettings | None = None) -> FitOutcome:
-    """The node's refit of one episode (pure; runs in its worker thread).
-
-    Reads the snapshot bag, splits it by stamp into the estimation part
-    ``[request.estimation)`` and the validation part ``[request.validation]`` (written as two
-    bags under ``work_dir``, with the recorded angles when the snapshot has them), runs the
-    identification pipeline on them (as ``dvt-identify``, report in ``work_dir/report``; the
-    baseline fit starts from the model in use when ``settings.from_model``), builds the
-    model-node push and simulates the model in use (``current``: the model node's parameter
-    values) and the new one (``current`` with the push applied) on the validation part with the
-    node's own predictor. The summary's ``structure_at_bounds`` lists the new model's structure
-    parameters at a bound (:func:`dvt_identify.pipeline.structure_at_bounds`), ``suspect`` the
-    fits' own flags (``OEFit.suspect_``).
-
-    Returns:
-        The :class:`FitOutcome` for :meth:`Supervisor.fit_done` (``error`` set, naming the
-        problem, when the data or the fit are unusable).
-    """
-    from dvt_identify.description import load_description
-    from dvt_identify.errors import DvtIdentifyError
-    from dvt_identify.pipeline import model_initial, model_push, structure_at_bounds
-    from dvt_identify.pipeline import run as run_pipeline
-    from dvt_model.errors import DvtModelError
-    from dvt_model.recording import read_run, write_run
-
-    s = settings or RefitSettings()
-    work = Path(work_dir)
-    summary: dict[str, Any] = {"snapshot": str(snapshot), "report": str(work / "report")}
-    try:
-        data = read_run(snapshot)
-        t = data.stamps_ns.astype(np.float64) * 1e-9
-        (e0, e1), (v0, v1) = request.estimation, request.validation
-        est = (t >= e0) & (t < e1)
-        val = (t >= v0) & (t <= v1 + 1e-6)
-        summary["samples"] = {"estimation": int(est.sum()), "validation": int(val.sum())}
-        if est.sum() < MIN_WINDOW_SAMPLES or val.sum() < MIN_WINDOW_SAMPLES:
-            return FitOutcome(summary=summary, error=(
-                f"snapshot {snapshot}: {int(est.sum())} estimation and {int(val.sum())} "
-                f"validation samples in [{e0:.3f}, {e1:.3f}] / [{v0:.3f}, {v1:.3f}] s "
-                f"(need >= {MIN_WINDOW_SAMPLES} each; {data.n} samples in the snapshot)"))
-        pos = data.positions
-        summary["angles"] = "recorded position" if pos is not None else \
-            "none recorded (integrated speeds)"
-        est_bag = write_run(work / "estimation", data.stamps_ns[est], data.speeds[est],
-                            data.currents[est], positions=None if pos is None else pos[est])
-        val_bag = write_run(work / "validation", data.stamps_ns[val], data.speeds[val],
-                            data.currents[val], positions=None if pos is None else pos[val])
-        cur = {k: plain_value(v) for k, v in current.items()}
-        initial: dict[str, float] | None = None
-        if s.from_model:
-            try:
-                initial = model_initial(load_description(s.description), cur)
-                summary["initial"] = {"from": "the model in use", "values": initial}
-            except DvtModelError as exc:  # the description's initial values only
-                summary["initial"] = {"from": "the description", "error": str(exc)}
-        result = run_pipeline([est_bag], [val_bag], work / "report",
-                              description=s.description, augment=s.augment, starts=s.starts,
-                              fit_decimate=s.fit_decimate, quiet=True, plots=s.plots,
-                              initial=initial)
-        summary["suspect"] = {"baseline": list(result.baseline.fit.suspect_),
-                              "final": list(result.final.fit.suspect_)}
-        summary["structure_at_bounds"] = structure_at_bounds(result)
-        summary["baseline_fit_percent"] = dict(zip(
-            result.baseline.val.output_names, result.baseline.val.fit_percent, strict=True))
-        summary["final_fit_percent"] = dict(zip(
-            result.final.val.output_names, result.final.val.fit_percent, strict=True))
-        summary["accepted"] = [d.score.label for d in result.accepted]
-        push = model_push(result)
-        summary["not_pushed"] = push.skipped
-        new = {**cur, **push.parameters}
-        summary["changed"] = _changes(cur, push.parameters)
-        cur_err = validation_errors(cur, data.stamps_ns[val], data.speeds[val],
-                                    data.currents[val])
-        new_err = validation_errors(new, data.stamps_ns[val], data.speeds[val],
-                                    data.currents[val])
-    except (DvtIdentifyError, DvtModelError, OSError) as exc:
-        return FitOutcome(summary=summary, error=f"{type(exc).__name__}: {exc}")
-    return FitOutcome(new_errors=new_err, current_errors=cur_err,
-                      new_parameters=dict(push.parameters),
-                      current_parameters={k: cur.get(k) for k in push.parameters},
-                      summary=summary)
-
-
 def episode_markdown(record: Mapping[str, Any]) -> str:
     """A short human-readable summary of an episode record (``episode-N.md``)."""
     def fmt(d: Any) -> str:
@@ -728,7 +636,11 @@ def episode_markdown(record: Mapping[str, Any]) -> str:
              f"* change at {record.get('change_s')} s on {', '.join(record.get('outputs') or [])}"
              f" (detected {record.get('detected_s')} s, {len(record.get('alarms') or [])} "
              "alarm(s))",
-             f"* estimation {record.get('estimation')}, validation {record.get('validation')}",
+             f"* estimation {record.get('estimation')}, validation {record.get('validation')}"
+             f" (stage {record.get('stage', '-')})",
+             "* refits: " + ("; ".join(
+                 f"{st.get('stage')}: {st.get('decision')} ({st.get('reason')})"
+                 for st in record.get("stages") or []) or "none"),
              f"* accepted effects: {', '.join(refit_.get('accepted') or []) or 'none'}",
              "* structure at a bound: " + ("; ".join(refit_.get("structure_at_bounds") or [])
                                           or "none"),

@@ -28,7 +28,7 @@ one row per residual entry.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,26 +87,36 @@ def bartlett_bandwidth(series: Sequence[Array], max_fraction: float = 0.25) -> i
     ``alpha = sum 4 rho^2 sigma^4 / ((1-rho)^6 (1+rho)^2) / sum sigma^4 / (1-rho)^4`` and
     ``L = 1.1447 (alpha N)^(1/3)``, capped at ``max_fraction`` of the shortest series.
     """
-    num = den = 0.0
-    n_total = 0
-    shortest = min((s.shape[0] for s in series), default=0)
-    for s in series:
-        x = np.asarray(s, dtype=float)
-        if x.ndim == 1:
-            x = x[:, None]
-        n_total += x.shape[0]
-        if x.shape[0] < 3:
-            continue
-        x = x - x.mean(axis=0)
-        a, b = x[1:], x[:-1]
-        bb = np.einsum("ij,ij->j", b, b)
-        ok = bb > 0
-        rho = np.zeros(x.shape[1])
-        rho[ok] = np.einsum("ij,ij->j", a, b)[ok] / bb[ok]
-        rho = np.clip(rho, -0.97, 0.97)
-        sig2 = np.var(a - b * rho, axis=0)
-        num += float(np.sum(4 * rho**2 * sig2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)))
-        den += float(np.sum(sig2**2 / (1 - rho) ** 4))
+    terms = [ar1_terms(s) for s in series]
+    return bandwidth_of(terms, max_fraction)
+
+
+def ar1_terms(s: Array) -> tuple[float, float, int]:
+    """One series' share of :func:`bartlett_bandwidth`: (numerator, denominator, length)."""
+    x = np.asarray(s, dtype=float)
+    if x.ndim == 1:
+        x = x[:, None]
+    if x.shape[0] < 3:
+        return 0.0, 0.0, int(x.shape[0])
+    x = x - x.mean(axis=0)
+    a, b = x[1:], x[:-1]
+    bb = np.einsum("ij,ij->j", b, b)
+    ok = bb > 0
+    rho = np.zeros(x.shape[1])
+    rho[ok] = np.einsum("ij,ij->j", a, b)[ok] / bb[ok]
+    rho = np.clip(rho, -0.97, 0.97)
+    sig2 = np.var(a - b * rho, axis=0)
+    return (float(np.sum(4 * rho**2 * sig2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2))),
+            float(np.sum(sig2**2 / (1 - rho) ** 4)), int(x.shape[0]))
+
+
+def bandwidth_of(terms: Sequence[tuple[float, float, int]], max_fraction: float = 0.25) -> int:
+    """:func:`bartlett_bandwidth` from each series' :func:`ar1_terms` (series met one at a
+    time)."""
+    num = sum(t[0] for t in terms)
+    den = sum(t[1] for t in terms)
+    n_total = sum(t[2] for t in terms)
+    shortest = min((t[2] for t in terms), default=0)
     if den <= 0.0 or n_total == 0:
         return 1
     alpha = num / den
@@ -127,15 +137,20 @@ def long_run_covariance(series: Sequence[Array], bandwidth: int) -> Array:
     p = series[0].shape[1] if series else 0
     S = np.zeros((p, p))
     for s in series:
-        g = np.asarray(s, dtype=float)
-        n = g.shape[0]
-        if n == 0:
-            continue
-        Ls = min(L, n)
-        c = np.vstack([np.zeros((1, p)), np.cumsum(g, axis=0)])
-        B = c[Ls:] - c[:-Ls]  # (n - Ls + 1, p)
-        S += (B.T @ B) / Ls * (n / (n - Ls + 1))
+        S += long_run_term(s, L)
     return S
+
+
+def long_run_term(s: Array, bandwidth: int) -> Array:
+    """One series' term of :func:`long_run_covariance` (series met one at a time)."""
+    g = np.asarray(s, dtype=float)
+    n, p = g.shape
+    if n == 0:
+        return np.zeros((p, p))
+    Ls = min(max(1, int(bandwidth)), n)
+    c = np.vstack([np.zeros((1, p)), np.cumsum(g, axis=0)])
+    B = c[Ls:] - c[:-Ls]  # (n - Ls + 1, p)
+    return np.asarray((B.T @ B) / Ls * (n / (n - Ls + 1)))
 
 
 def _pinv(H: Array) -> tuple[Array, NDArray[np.bool_]]:
@@ -186,23 +201,59 @@ def sandwich_covariance(jac: ArrayLike, residual: ArrayLike, ny: int,
         :class:`Covariance` in the parameters' units.
     """
     J, r = _check(jac, residual, ny, seg_sizes)
-    m, p = J.shape
-    H = J.T @ J
-    Hinv, determined = _pinv(H)
+    m = J.shape[0]
     g = scores(J, r, ny, seg_sizes)
     L = bartlett_bandwidth(g) if bandwidth is None else max(1, int(bandwidth))
-    S = long_run_covariance(g, L)
+    return covariance_from(J.T @ J, long_run_covariance(g, L), L, m, float(r @ r), n_params)
+
+
+def covariance_from(H: Array, S: Array, bandwidth: int, m: int, rr: float,
+                    n_params: int | None = None) -> Covariance:
+    """:func:`sandwich_covariance` from its parts: ``H = J^T J`` (p, p), the long-run
+    covariance ``S`` of the scores (p, p) with its ``bandwidth``, the residual count ``m`` and
+    ``|r|^2`` (a fit that never held its whole Jacobian builds these segment by segment)."""
+    p = H.shape[0]
+    Hinv, determined = _pinv(H)
     dof = max(m - (p if n_params is None else n_params), 1)
     cov = Hinv @ S @ Hinv * (m / dof)
     cov = 0.5 * (cov + cov.T)
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    s2 = float(r @ r) / dof
+    s2 = rr / dof
     naive = np.sqrt(np.clip(np.diag(Hinv) * s2, 0.0, None))
     std[~determined] = np.inf
     naive[~determined] = np.inf
     ok = determined & (naive > 0)
     inflation = float(np.median(std[ok] / naive[ok])) if np.any(ok) else math.nan
-    return Covariance(cov=cov, std=std, naive_std=naive, bandwidth=L, inflation=inflation)
+    return Covariance(cov=cov, std=std, naive_std=naive, bandwidth=bandwidth,
+                      inflation=inflation)
+
+
+def sandwich_by_segment(rows: Callable[[int], tuple[Array, Array, NDArray[np.int64]]],
+                        seg_sizes: Sequence[int], ny: int, q: int,
+                        n_params: int | None = None) -> tuple[Array, Covariance]:
+    """:func:`sandwich_covariance` of a problem too large to hold its Jacobian: ``rows(k)``
+    gives segment ``k``'s rows of the Jacobian over the unknowns ``cols`` (zero in the
+    others; ``(N_k ny, c_k)``), the residual ``(N_k ny,)`` and ``cols`` (c_k indices into the
+    ``q`` unknowns); it is called twice per segment (``H`` and the scores' AR(1) terms for the
+    bandwidth, then the scores' long-run covariance). Returns the whole residual and the
+    covariance (q, q)."""
+    H = np.zeros((q, q))
+    terms = []
+    parts = []
+    for k, n in enumerate(seg_sizes):
+        J, r, cols = rows(k)
+        H[np.ix_(cols, cols)] += J.T @ J
+        parts.append(np.asarray(r, float))
+        terms.append(ar1_terms(scores(J, r, ny, [n])[0]))
+    if not parts:
+        raise UncertaintyError("sandwich_by_segment: no segment")
+    L = bandwidth_of(terms)
+    S = np.zeros((q, q))
+    for k, n in enumerate(seg_sizes):
+        J, r, cols = rows(k)
+        S[np.ix_(cols, cols)] += long_run_term(scores(J, r, ny, [n])[0], L)
+    resid = np.concatenate(parts)
+    return resid, covariance_from(H, S, L, resid.size, float(resid @ resid), n_params)
 
 
 @dataclass(frozen=True)

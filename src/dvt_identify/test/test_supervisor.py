@@ -9,6 +9,8 @@ import pytest
 
 from dvt_identify.errors import SupervisorError
 from dvt_identify.supervisor import (
+    STAGE_EFFECTS,
+    STAGE_FULL,
     Diagnostic,
     FitOutcome,
     Push,
@@ -18,12 +20,14 @@ from dvt_identify.supervisor import (
     State,
     Supervisor,
     SupervisorConfig,
+    episode_markdown,
 )
 
 CFG = SupervisorConfig(min_post_change_s=30.0, settle_s=1.0, validation_s=10.0,
-                       max_estimation_s=100.0, watch_s=20.0, watch_settle_s=2.0,
-                       baseline_s=10.0, rollback_tolerance=0.1, min_watch_samples=500,
-                       fit_timeout_s=50.0, push_timeout_s=5.0)
+                       full_post_change_s=0.0, max_estimation_s=100.0, watch_s=20.0,
+                       watch_settle_s=2.0, baseline_s=10.0, rollback_tolerance=0.1,
+                       min_watch_samples=500, fit_timeout_s=50.0, push_timeout_s=5.0)
+"""One refit per episode (``full_post_change_s`` 0); the two stages: ``CFG2``."""
 OLD = {"effects": "old"}
 NEW = {"effects": "new"}
 
@@ -203,7 +207,9 @@ def test_failures_and_ignored_events() -> None:
 @pytest.mark.parametrize(("field", "value", "needle"), [
     ("watch_s", 0.0, "supervisor.watch_s"),
     ("alpha", 1.5, "supervisor.alpha"),
-    ("min_post_change_s", 5.0, "supervisor.min_post_change_s"),
+    ("min_post_change_s", 1.5, "supervisor.min_post_change_s"),
+    ("full_post_change_s", 4.0, "supervisor.full_post_change_s"),
+    ("full_validation_s", -1.0, "supervisor.full_validation_s"),
     ("min_watch_samples", 0, "supervisor.min_watch_samples"),
     ("rollback_tolerance", -0.1, "supervisor.rollback_tolerance"),
 ])
@@ -231,7 +237,8 @@ def test_node_parameters_are_the_config_fields() -> None:
 def test_changes_and_plain_values() -> None:
     import array
 
-    from dvt_identify.supervisor import _changes, plain_value
+    from dvt_identify.refit import changes as _changes
+    from dvt_identify.refit import plain_value
 
     assert plain_value(array.array("d", [1.0, 2.0])) == [1.0, 2.0]
     assert plain_value(np.array([3.0])) == [3.0] and plain_value(None) is None
@@ -246,7 +253,7 @@ def test_changes_and_plain_values() -> None:
 
 
 def test_validation_errors_of_the_plants_own_model_are_small() -> None:
-    from dvt_identify.supervisor import validation_errors
+    from dvt_identify.refit import validation_errors
     from dvt_model.hybrid import HybridModel
     from dvt_model.params import load_parameters
 
@@ -265,7 +272,7 @@ def test_validation_errors_of_the_plants_own_model_are_small() -> None:
 
 
 def test_refit_names_a_window_without_data(tmp_path: Any) -> None:
-    from dvt_identify.supervisor import refit
+    from dvt_identify.refit import refit
     from dvt_model.recording import write_run
 
     n = 3000
@@ -281,8 +288,6 @@ def test_refit_names_a_window_without_data(tmp_path: Any) -> None:
 
 
 def test_episode_markdown_summarises_the_record() -> None:
-    from dvt_identify.supervisor import episode_markdown
-
     sup = Supervisor(CFG)
     _live(sup, 100.0, 140.0, 0.02)
     _to_refit(sup)
@@ -316,3 +321,94 @@ def test_alarms_from_before_the_start_are_ignored() -> None:
     assert "before this supervisor started" in diag.message and "ignored" in diag.message
     sup.on_alarm(_alarm(600.0, 601.0), 601.0)
     assert sup.state is State.WAITING and sup.episodes == 1
+
+
+# ------------------------------------------------------------------- the two refit stages
+CFG2 = SupervisorConfig(min_post_change_s=5.0, settle_s=0.5, validation_s=1.5,
+                        full_post_change_s=30.0, full_validation_s=10.0,
+                        max_estimation_s=100.0, watch_s=20.0, watch_settle_s=2.0,
+                        baseline_s=10.0, min_watch_samples=500, fit_timeout_s=50.0,
+                        push_timeout_s=5.0)
+
+
+def test_first_refit_holds_the_structure_then_the_full_refit_when_not_pushed() -> None:
+    sup = Supervisor(CFG2)
+    sup.on_alarm(_alarm(100.0, 100.1), 100.1)
+    assert sup.tick(104.9) == []
+    (first,) = _of(sup.tick(105.0), RequestFit)  # change + min_post_change_s
+    assert first.stage == STAGE_EFFECTS
+    assert first.estimation == pytest.approx((100.5, 103.5))  # change + settle .. now - 1.5
+    assert first.validation == pytest.approx((103.5, 105.0))
+    acts = sup.fit_done(_fit(better=False, n=1500), 108.0)
+    assert sup.state is State.WAITING and not _of(acts, Report) and not _of(acts, Push)
+    (diag,) = _of(acts, Diagnostic)
+    assert "not_better" in diag.message and "full refit" in diag.message
+    assert sup.tick(129.9) == []
+    (full,) = _of(sup.tick(130.0), RequestFit)  # change + full_post_change_s
+    assert full.stage == STAGE_FULL and full.episode == first.episode
+    assert full.estimation == pytest.approx((100.5, 120.0))
+    assert full.validation == pytest.approx((120.0, 130.0))  # full_validation_s held out
+    (rep,) = _of(sup.fit_done(_fit(better=False, seed=4), 140.0), Report)
+    r = rep.record
+    assert r["outcome"] == "not_better" and r["stage"] == STAGE_FULL
+    assert [(s["stage"], s["decision"]) for s in r["stages"]] == [
+        (STAGE_EFFECTS, "not_better"), (STAGE_FULL, "not_better")]
+    assert r["stages"][0]["validation"] == pytest.approx((103.5, 105.0))
+    assert r["estimation"] == pytest.approx((100.5, 120.0))  # the last refit's
+    md = episode_markdown(r)
+    assert "* refits: effects: not_better" in md and "; full: not_better" in md
+
+
+def test_a_pushed_first_refit_ends_the_episode_without_a_full_refit() -> None:
+    sup = Supervisor(CFG2)
+    _live(sup, 100.0, 108.0, 0.02)
+    sup.on_alarm(_alarm(100.0, 100.1), 100.1)
+    sup.tick(105.0)
+    (push,) = _of(sup.fit_done(_fit(better=True, n=1500), 107.0), Push)
+    assert push.parameters == NEW
+    sup.push_done(True, 107.2)
+    _live(sup, 107.2, 128.0, 0.01, seed=2)
+    (rep,) = _of(sup.tick(127.5), Report)
+    assert rep.record["outcome"] == "confirmed" and rep.record["stage"] == STAGE_EFFECTS
+    assert [s["decision"] for s in rep.record["stages"]] == ["push"]
+
+
+def test_alarm_while_waiting_for_the_full_refit_starts_over_with_the_first() -> None:
+    sup = Supervisor(CFG2)
+    sup.on_alarm(_alarm(100.0, 100.1), 100.1)
+    sup.tick(105.0)
+    sup.fit_done(_fit(better=False, n=1500), 106.0)
+    assert sup.state is State.WAITING
+    sup.on_alarm(_alarm(110.0, 110.2, "carrier3"), 110.2)  # another regime
+    assert sup.tick(114.9) == []
+    (req,) = _of(sup.tick(115.0), RequestFit)
+    assert req.stage == STAGE_EFFECTS and req.estimation[0] == pytest.approx(110.5)
+
+
+def test_failed_first_refit_goes_on_but_a_crashed_one_ends_the_episode() -> None:
+    sup = Supervisor(CFG2)
+    sup.on_alarm(_alarm(100.0, 100.1), 100.1)
+    sup.tick(105.0)
+    sup.fit_done(FitOutcome(error="DataError: too short"), 106.0)
+    assert sup.state is State.WAITING  # the longer window may do
+    (full,) = _of(sup.tick(130.0), RequestFit)
+    assert full.stage == STAGE_FULL
+    sup2 = Supervisor(CFG2)
+    sup2.on_alarm(_alarm(100.0, 100.1), 100.1)
+    sup2.tick(105.0)
+    acts = sup2.fit_done(FitOutcome(error="the refit process (pid 7) died during the refit "
+                                          "(killed by signal SIGKILL)", crashed=True), 106.0)
+    (rep,) = _of(acts, Report)
+    assert sup2.state is State.IDLE and rep.record["outcome"] == "refit_crashed"
+    assert "SIGKILL" in rep.record["reason"] and not rep.record["pushed"]
+    assert _of(acts, Diagnostic)[0].level == 2
+
+
+def test_no_full_refit_when_it_is_off() -> None:
+    sup = Supervisor(SupervisorConfig(full_post_change_s=0.0))
+    sup.on_alarm(_alarm(100.0, 100.1), 100.1)
+    (req,) = _of(sup.tick(105.0), RequestFit)  # the defaults: 5 s after the change
+    assert req.stage == STAGE_EFFECTS
+    assert req.validation[1] - req.validation[0] == pytest.approx(1.5)
+    (rep,) = _of(sup.fit_done(_fit(better=False, n=1500), 107.0), Report)
+    assert rep.record["outcome"] == "not_better" and len(rep.record["stages"]) == 1

@@ -6,6 +6,7 @@ pushed unless clearly better."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -16,14 +17,14 @@ import pytest
 from dvt_identify.description import load_description
 from dvt_identify.errors import DescriptionError
 from dvt_identify.pipeline import model_initial
+from dvt_identify.refit import RefitSettings, refit
 from dvt_identify.supervisor import (
+    STAGE_FULL,
     FitOutcome,
-    RefitSettings,
     RequestFit,
     State,
     Supervisor,
     SupervisorConfig,
-    refit,
 )
 from dvt_model.recording import read_run, write_run
 
@@ -107,7 +108,7 @@ def refitted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, FitO
                     positions=run.positions)
     t = stamps * 1e-9
     req = RequestFit(1, (float(t[0]) + 1.0, float(t[-1]) - 2.0),
-                     (float(t[-1]) - 2.0, float(t[-1])), ("sun_shaft",))
+                     (float(t[-1]) - 2.0, float(t[-1])), ("sun_shaft",), STAGE_FULL)
     out = refit(bag, req, {"params": "physical"}, root / "work",
                 RefitSettings(augment=False, starts=1, fit_decimate=2))
     assert not out.error, out.error
@@ -184,7 +185,8 @@ def _refitting(sup: Supervisor) -> None:
 def test_structure_at_a_bound_is_not_pushed_unless_clearly_better(gain: float,
                                                                   pushed: bool) -> None:
     bound = ["M22 = 1e-06 at its lower bound 1e-06"]
-    sup = Supervisor(SupervisorConfig())
+    one = SupervisorConfig(full_post_change_s=0.0)  # one refit: its decision ends the episode
+    sup = Supervisor(one)
     _refitting(sup)
     acts = sup.fit_done(_outcome(gain, bound), 201.0)
     if pushed:
@@ -198,12 +200,12 @@ def test_structure_at_a_bound_is_not_pushed_unless_clearly_better(gain: float,
         assert "suspect_min_relative_gain 0.5" in rec["reason"]
         assert acts[0].level == 1 and acts[0].values["outcome"] == "suspect"
     # the same gain without a bound: pushed
-    sup2 = Supervisor(SupervisorConfig())
+    sup2 = Supervisor(one)
     _refitting(sup2)
     sup2.fit_done(_outcome(gain, []), 201.0)
     assert sup2.state is State.PUSHING
     # never pushed at a bound when the threshold is above any possible gain
-    sup3 = Supervisor(SupervisorConfig(suspect_min_relative_gain=1.5))
+    sup3 = Supervisor(SupervisorConfig(suspect_min_relative_gain=1.5, full_post_change_s=0.0))
     _refitting(sup3)
     sup3.fit_done(_outcome(gain, bound), 201.0)
     assert sup3.reports[-1]["outcome"] == "suspect"
@@ -214,3 +216,84 @@ def test_suspect_threshold_is_validated() -> None:
 
     with pytest.raises(SupervisorError, match="supervisor.suspect_min_relative_gain"):
         SupervisorConfig(suspect_min_relative_gain=-0.1).validated()
+
+
+# ------------------------------------------------------- the first stage: structure held
+def test_held_description_fixes_the_structure_at_the_model_in_use(tmp_path: Path) -> None:
+    from dvt_identify.refit import held_description
+    from dvt_model.config import resolve
+
+    inuse = model_initial(load_description("dvt"), {"params": "physical"})
+    got = held_description(load_description("dvt"), inuse, tmp_path / "held.yaml")
+    assert got is not None
+    path, held = got
+    assert set(held) == {"M11", "M12", "M22", "D11", "D12", "D22"}
+    desc = load_description(path)
+    assert [p.name for p in desc.structure.params] == []  # nothing of M, D left to fit
+    _, _, minv = desc.structure.matrices(np.zeros(0))
+    np.testing.assert_allclose(np.linalg.inv(minv), resolve({"params": "physical"}).rigid.M)
+    assert len(desc.make_candidates()) == len(load_description("dvt").make_candidates())
+    # an entry that mixes a held parameter with a free one keeps both free
+    text = load_description("dvt").text.replace("mass: [[M11, M12], [M12, M22]]",
+                                                 'mass: [["M11 + 0.5*M12", M12], [M12, M22]]')
+    assert "M11 + 0.5*M12" in text
+    (tmp_path / "mixed.yaml").write_text(text)
+    values = {k: v for k, v in inuse.items() if k != "M12"}
+    got2 = held_description(load_description(tmp_path / "mixed.yaml"), values,
+                            tmp_path / "held2.yaml")
+    assert got2 is not None
+    assert set(got2[1]) == {"M22", "D11", "D12", "D22"}  # M11 shares an entry with M12
+    assert {p.name for p in load_description(got2[0]).structure.params} == {"M11", "M12"}
+    assert held_description(load_description("dvt"), {}, tmp_path / "none.yaml") is None
+
+
+@pytest.fixture(scope="module")
+def friction_step(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float]:
+    """The ``watch`` experiment on the ``physical`` plant at 1 kHz, its Coulomb friction
+    stepping from 0 to 0.05 N m (sun) and 0.20 N m (carrier 3) at 6 s (``friction_step``);
+    the snapshot bag and the change time (host time [s])."""
+    from dvt_driver.plant.hidden import load_hidden
+    from dvt_driver.plant.offline import run_offline
+    from dvt_driver.run.experiment_core import build
+    from dvt_model.params import load_parameters
+
+    hidden = load_hidden("friction_step")
+    hidden = dataclasses.replace(hidden, changes=tuple(
+        dataclasses.replace(c, at=6.0) for c in hidden.changes))
+    run = run_offline(build("watch", seed=1, duration=12.0), load_parameters("physical"),
+                      hidden, seed=1)
+    stamps = T0_NS + np.round(run.t * 1e9).astype(np.int64)
+    bag = write_run(tmp_path_factory.mktemp("step") / "snapshot", stamps, run.speeds,
+                    run.currents, positions=run.positions)
+    return bag, T0_NS * 1e-9 + 6.0
+
+
+T0_NS = 1_800_000_000 * 10**9
+
+
+def test_first_refit_names_both_coulomb_steps_on_a_few_seconds(
+        friction_step: tuple[Path, float], tmp_path: Path) -> None:
+    """2.5 s to fit, 1.5 s held out, 0.5 s after the step (the live loop's first refit): with
+    the structure held at the model in use the refit names Coulomb friction on the sun shaft
+    and on carrier 3, near the plant's values, and pushes the in-use M and D unchanged."""
+    from dvt_model.config import resolve
+
+    bag, change = friction_step
+    req = RequestFit(1, (change + 0.5, change + 3.0), (change + 3.0, change + 4.5),
+                     ("sun_shaft",))
+    out = refit(bag, req, {"params": "physical"}, tmp_path / "work",
+                RefitSettings(fit_decimate=10))
+    assert not out.error, out.error
+    s = out.summary
+    assert s["stage"] == "effects" and set(s["held"]) == {"M11", "M12", "M22", "D11", "D12",
+                                                          "D22"}
+    assert set(s["accepted"]) == {"coulomb_friction@sun_shaft", "coulomb_friction@carrier3"}
+    terms = json.loads(out.new_parameters["effects"])
+    fc = {tuple(t["member"]): t["Fc"] for t in terms if t["kind"] == "coulomb"}
+    assert fc[(1.0, 0.0)] == pytest.approx(0.05, rel=0.3), fc
+    assert fc[(0.0, 1.0)] == pytest.approx(0.20, rel=0.3), fc
+    np.testing.assert_allclose(np.reshape(out.new_parameters["M"], (2, 2)),
+                               resolve({"params": "physical"}).rigid.M, rtol=1e-9)
+    rms_new = np.sqrt(np.mean(np.asarray(out.new_errors) ** 2, axis=0))
+    rms_cur = np.sqrt(np.mean(np.asarray(out.current_errors) ** 2, axis=0))
+    assert np.all(rms_new < 0.3 * rms_cur), (rms_cur, rms_new)

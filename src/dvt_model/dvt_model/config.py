@@ -61,7 +61,7 @@ from dvt_model.contract import (
 from dvt_model.detect import DetectorConfig
 from dvt_model.dynamics import RigidModel, rigid_model
 from dvt_model.errors import ContractError, DvtModelError, ModelError, ParameterError
-from dvt_model.hybrid import HybridModel
+from dvt_model.hybrid import CROSSING_GRID, HybridModel
 from dvt_model.linear import LinearModel
 from dvt_model.load import JointLoad, load_joint_load
 from dvt_model.params import BrakeParams, TransmissionParams, load_parameters
@@ -330,11 +330,13 @@ def build_predictor(values: Mapping[str, Any]) -> tuple[Predictor, str]:
         model = LinearModel(A, B)
         desc = f"linear A,B (2x{B.shape[1]})"
     else:
+        # a ring's zero crossing splits a step on a grid: cached splits, no per-sample expm
         model = HybridModel(cfg.rigid, cfg.brake,
                             extra_force=terms.extra_force if terms.forces else None,
                             load=cfg.load,
                             angle_input_force=(terms.angle_force if terms.has_angle_terms
-                                               else None))
+                                               else None),
+                            crossing_grid=CROSSING_GRID)
         desc = f"hybrid physics '{cfg.params.name}'" + (
             f" with {list(cfg.changes)}" if cfg.changes else "")
         if cfg.load is not None:

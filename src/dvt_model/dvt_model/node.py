@@ -196,7 +196,9 @@ def _initial(spec: NodeParam) -> Any:
 _STAMP = struct.Struct("<iI")
 _U32 = struct.Struct("<I")
 _LE = cdr.CDR_LE[:2]
-_POSITION, _VELOCITY, _EFFORT = 0, 1, 2
+POSITION, VELOCITY, EFFORT = 0, 1, 2
+"""The ``field`` of :class:`JointStateReader`: which array of a JointState it reads."""
+_POSITION, _VELOCITY, _EFFORT = POSITION, VELOCITY, EFFORT
 
 
 def stamp_of(raw: bytes) -> int:

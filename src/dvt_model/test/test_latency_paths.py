@@ -21,7 +21,7 @@ import pytest
 from dvt_model.brake import band_torques
 from dvt_model.contract import CURRENT_NAMES, SPEED_NAMES
 from dvt_model.detect import ChangeDetector
-from dvt_model.hybrid import HybridModel
+from dvt_model.hybrid import CROSSING_GRID, HybridModel
 from dvt_model.linear import LinearModel
 from dvt_model.params import load_parameters
 from dvt_model.predictor import Predictor, ResidualBlocks
@@ -200,7 +200,8 @@ def test_node_publishes_the_predictor_residuals_and_detects_as_directly(params,
         node._on_msg(js, 0) if k % 2 else node._on_msg(cur, 1)
     assert node.published == len(t) and node.bad_messages == 0
 
-    p = Predictor(HybridModel.from_params(params), params.brake)
+    # the node's model: the crossing grid of build_predictor
+    p = Predictor(HybridModel.from_params(params, crossing_grid=CROSSING_GRID), params.brake)
     setup = node.blocks
     assert setup is not None and node.detector is not None
     blocks = ResidualBlocks(setup.size, 2, setup.max_gap_s)

@@ -19,10 +19,12 @@ from dvt_model.contract import DEFAULT_RECORD_TOPICS
 
 __all__ = [
     "IDENTIFY_DIR",
+    "REALTIME_CHILDREN",
     "SUPERVISE_RING_MINUTES",
     "experiment_of",
     "parse_args",
     "rate_of",
+    "realtime_priorities",
     "ros_params",
 ]
 
@@ -32,6 +34,20 @@ default wait (60 s of post-change data) plus a refit, with margin (``docs/loop.m
 IDENTIFY_DIR = "identify"
 """Sub-directory of the log directory that ``--supervise`` gives the identifier as
 ``output_dir`` (its episode reports ``episodes/episode-N.json`` / ``.md`` go there)."""
+REALTIME_CHILDREN = {"plant": 0, "driver": 0, "model": 1, "experiment": -1, "recorder": -1,
+                     "ring": -1}
+"""The children ``--realtime P`` runs at a real-time priority (``SCHED_RR``), as offsets from
+``P``: the sample path (plant, driver, model node) at ``P``; the experiment (its commands and
+keep-alives: the controller's watchdog trips after 0.2 s without one) and the recorders (their
+snapshot and flush work never delays a sample) one below. Everything else (the identifier and
+its refit process, the bridge, the launcher) stays in the normal scheduler."""
+
+
+def realtime_priorities(priority: int | None) -> dict[str, int]:
+    """Child name -> ``SCHED_RR`` priority for ``--realtime priority`` (empty: off)."""
+    if not priority:
+        return {}
+    return {name: max(1, priority + off) for name, off in REALTIME_CHILDREN.items()}
 
 
 def _param(text: str, option: str) -> list[str]:
@@ -121,6 +137,12 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     common.add_argument("--episodes", type=int, default=None, metavar="N",
                         help="end the run after N episode reports (needs --supervise; exit "
                              "status 5 if fewer when the run ends otherwise)")
+    common.add_argument("--realtime", type=int, default=None, metavar="P",
+                        help="run the 1 kHz chain (plant, driver, model node; the recorders at "
+                             "P-1) at real-time priority P (SCHED_RR, 1..98): no other process "
+                             "delays a sample; needs the right to (root, CAP_SYS_NICE or an "
+                             "rtprio limit, ulimit -r); without it a warning and the normal "
+                             "scheduler")
     common.add_argument("--start-discovery-server", default=None, metavar="[IP:]PORT",
                         help="start a Fast DDS discovery server (e.g. 0.0.0.0:11811) and use it "
                              "(docs/multihost.md)")
@@ -147,6 +169,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     args = p.parse_args(list(argv))
     if args.rate is not None and not 0 < args.rate <= 2000:
         p.error(f"--rate: expected 0 < HZ <= 2000, got {args.rate}")
+    if args.realtime is not None and not 1 <= args.realtime <= 98:
+        p.error(f"--realtime: expected a priority 1..98, got {args.realtime}")
     if args.duration is not None and not args.duration > 0:
         p.error(f"--duration: expected a number > 0 s, got {args.duration}")
     for opt in ("driver_param", "model_param", "record_param", "foxglove_param",

@@ -28,6 +28,16 @@ recordings (``--scaling`` lengths in seconds; a prefix may leave out the gear ph
 them the band-brake model, which the pipeline then drops) and fits
 ``seconds ~ samples^exponent``.
 
+Long-recording mode::
+
+    dvt-bench identify --hours H [--run-minutes 5] [--cache DIR] [--json]
+
+Generates ``H`` hours of the simulated plant at 1 kHz through the offline runner (runs of
+``--run-minutes``, cached in ``--cache``, default ``~/.cache/dvt-bench/identify-hours``) and
+identifies them in a process of its own: ``loop_seconds`` (the identification, as above) and
+``peak_rss_mb`` (its largest resident set, worker processes included), targets 60 s and 2 GB
+for one hour (:mod:`dvt_identify.bench_identify.hours`).
+
 Monte Carlo mode::
 
     dvt-bench identify --monte-carlo [N] [--mc-seconds 10] [--mc-rate 500] [--noise 0.05]
@@ -102,6 +112,7 @@ from dvt_identify.bench_identify.compare import (
     pretty_compare,
     run_compare,
 )
+from dvt_identify.bench_identify.hours import pretty_hours, run_hours
 from dvt_identify.bench_identify.monte_carlo import (
     coloured_noise,
     crlb_std,
@@ -125,6 +136,7 @@ __all__ = [
     "power_law_exponent",
     "pretty",
     "run_compare",
+    "run_hours",
     "run_monte_carlo",
     "run_timing",
 ]
@@ -137,6 +149,8 @@ def pretty(res: dict[str, Any]) -> str:
         return pretty_compare(res)
     if res.get("mode") == "monte_carlo":
         return pretty_monte_carlo(res)
+    if res.get("mode") == "hours":
+        return pretty_hours(res)
     return pretty_timing(res)
 
 
@@ -180,6 +194,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="identify and compare with the reference fit: estimation=validation "
                         "bag pairs (default: bags/ident-coulomb=bags/ident-coulomb-val "
                         "bags/ident-none-1=bags/ident-none-val)")
+    h = p.add_argument_group("long-recording mode")
+    h.add_argument("--hours", type=float, default=None, metavar="H",
+                   help="generate H hours at 1 kHz through the offline runner and identify "
+                        "them (loop_seconds, peak_rss_mb)")
+    h.add_argument("--run-minutes", type=float, default=5.0,
+                   help="length of one generated run [min] (5)")
+    h.add_argument("--cache", default=None,
+                   help="where the generated runs are kept (~/.cache/dvt-bench/"
+                        "identify-hours)")
     m = p.add_argument_group("Monte Carlo mode")
     m.add_argument("--monte-carlo", type=int, nargs="?", const=50, default=None, metavar="N",
                    help="run N simulated fits (default N 50)")
@@ -219,6 +242,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 pairs.append((e, v))
             res = run_compare(pairs or None, args.description, args.starts, args.fit_decimate,
                               log)
+        elif args.hours is not None:
+            res = run_hours(args.hours, args.description,
+                            Path(args.cache) if args.cache else None, args.run_minutes,
+                            args.seed, log)
         elif args.monte_carlo is not None:
             res = run_monte_carlo(args.monte_carlo, args.mc_seconds, args.mc_rate, args.noise,
                                   args.workers, args.seed, args.description, args.starts, log,

@@ -1,0 +1,69 @@
+"""Independent pieces on both cores (:mod:`dvt_identify.parallel`): forked workers give the
+serial loop's results in its order, hand exceptions back, and never fork again."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from dvt_identify import parallel
+from dvt_identify.errors import FitError
+from dvt_identify.parallel import fork_map, workers
+
+
+def test_results_come_back_in_order_from_both_processes() -> None:
+    parent = os.getpid()
+    out = fork_map(lambda k: (k, os.getpid(), np.arange(k)), range(7), 2)
+    assert [k for k, _, _ in out] == list(range(7))
+    assert all(np.array_equal(a, np.arange(k)) for k, _, a in out)
+    pids = {pid for _, pid, _ in out}
+    assert parent in pids and len(pids) == 2  # one share here, the other in a child
+
+
+def test_an_exception_in_a_worker_is_raised_here_first_in_order() -> None:
+    def fn(k: int) -> int:
+        if k in (3, 4):
+            raise ValueError(f"item {k} failed")
+        return k
+    with pytest.raises(ValueError, match="item 3 failed"):
+        fork_map(fn, range(6), 2)
+
+
+def test_one_worker_runs_here_and_a_worker_does_not_fork(monkeypatch) -> None:
+    parent = os.getpid()
+    monkeypatch.setenv(parallel.ENV, "1")
+    assert workers() == 1
+    assert {pid for pid in fork_map(lambda _k: os.getpid(), range(4))} == {parent}
+    monkeypatch.setenv(parallel.ENV, "2")
+    nested = fork_map(lambda _k: (parallel.workers(),
+                                  len({p for p in fork_map(lambda _j: os.getpid(), range(4))})),
+                      range(2))
+    assert nested[1] == (1, 1)  # in the child: serial, one process
+
+
+@pytest.mark.parametrize("bad", ["0", "two", "-1"])
+def test_a_bad_worker_count_is_refused_naming_it(monkeypatch, bad: str) -> None:
+    monkeypatch.setenv(parallel.ENV, bad)
+    with pytest.raises(FitError, match=f"{parallel.ENV}.*{bad}"):
+        workers()
+
+
+def test_a_process_with_other_threads_runs_serially(monkeypatch) -> None:
+    """A ROS node's process has its executor and worker threads: a fork there could inherit a
+    lock another thread holds, so :func:`workers` says 1 while another thread runs."""
+    import threading
+
+    monkeypatch.setenv(parallel.ENV, "2")
+    assert workers() == 2
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait, daemon=True)
+    t.start()
+    try:
+        assert workers() == 1
+        assert {pid for pid in fork_map(lambda _k: os.getpid(), range(4))} == {os.getpid()}
+    finally:
+        stop.set()
+        t.join(5)
+    assert workers() == 2
