@@ -26,7 +26,7 @@ from dvt_driver.plant.offline import run_offline
 from dvt_driver.run.experiment_core import build
 from dvt_model.contract import CURRENT_NAMES, CURRENTS, JOINT_STATE_TYPE, JOINT_STATES, SPEED_NAMES
 from dvt_model.params import load_parameters
-from dvt_model.recording import read_run_info, read_truth
+from dvt_model.recording import read_run_info, read_truth, write_truth
 from dvt_model.recording.cdr import joint_state_cdr
 from dvt_model.recording.write import BagRecorder
 
@@ -63,7 +63,7 @@ def make(out: Path, name: str, source: Path) -> Path:
                              f"(experiment {experiment.name} seed "
                              f"{int(made['experiment']['seed']) + 100}, validation of "
                              f"{source.name})")
-    (dst / "truth.yaml").write_text(yaml.safe_dump(made_truth, sort_keys=False))
+    write_truth(dst, made_truth)
     size = sum(f.stat().st_size for f in dst.iterdir())
     if size > LIMIT_BYTES:
         raise SystemExit(f"{dst}: {size / 1e6:.2f} MB, over the 3 MB limit")

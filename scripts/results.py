@@ -11,6 +11,10 @@ Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.j
 ``hours`` (``dvt-bench identify --hours 1 --json``), ``loop`` (``dvt-bench loop
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
 randomised clean plants of tests/test_false_effects.py), ``all``.
+
+``scripts/results.sh table`` runs nothing: it writes the README's results table (between
+``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
+(``tests/test_readme_results.py`` checks that the README holds exactly that table).
 """
 
 from __future__ import annotations
@@ -113,7 +117,117 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
 }
 
 
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+
+
+def _get(doc: Any, *path: str) -> Any:
+    for k in path:
+        if not isinstance(doc, dict) or k not in doc:
+            return None
+        doc = doc[k]
+    return doc
+
+
+def _n(v: Any, fmt: str = ".3g") -> str:
+    return "?" if not isinstance(v, (int, float)) or isinstance(v, bool) else format(v, fmt)
+
+
+def _pair(d: Any, fmt: str = ".2f") -> str:
+    return " / ".join(_n(x, fmt) for x in d.values()) if isinstance(d, dict) else "?"
+
+
+def _row_emps(f: dict[str, Any]) -> tuple[str, str]:
+    rows = {r.get("label", ""): r for r in _get(f, "benchmark", "rows") or []}
+    ours = next((r for k, r in rows.items() if k.startswith("dvt-identify, chosen")), {})
+    lin = next((r for k, r in rows.items() if "linear reference" in k), {})
+    return ("EMPS (real drive), test record, effects chosen on the estimation record only",
+            f"position RMSE {_n(ours.get('test_rms_mm'))} mm; our linear reference "
+            f"{_n(lin.get('test_rms_mm'))} mm; published: LTI 5.53, NARX 5.17, best 2.64 mm")
+
+
+def _row_identify(f: dict[str, Any]) -> tuple[str, str]:
+    return ("`dvt-bench identify`: 38 s at 1 kHz, baseline / augment loop",
+            f"{_n(f.get('baseline_seconds'), '.2f')} s / {_n(f.get('loop_seconds'), '.2f')} s "
+            f"(targets {_n(_get(f, 'targets', 'baseline_seconds'))} / "
+            f"{_n(_get(f, 'targets', 'loop_seconds'))} s); validation fit "
+            f"{_pair(_get(f, 'fit', 'loop_validation_fit_percent'))} %")
+
+
+def _row_hours(f: dict[str, Any]) -> tuple[str, str]:
+    return ("an hour at 1 kHz (`dvt-bench identify --hours 1`)",
+            f"{_n(f.get('loop_seconds'), '.0f')} s, peak {_n(f.get('peak_rss_mb'), '.0f')} MB "
+            f"(targets {_n(_get(f, 'targets', 'loop_seconds'))} s, "
+            f"{_n(_get(f, 'targets', 'peak_rss_mb'), '.0f')} MB)")
+
+
+def _row_loop(f: dict[str, Any]) -> tuple[str, str]:
+    return ("the live loop, friction step (`dvt-bench loop --with-identifier`)",
+            f"{_n(f.get('rate_hz'), '.0f')} Hz, outcome {f.get('outcome', '?')}, "
+            f"{_n(f.get('false_alarms'))} false alarms, {_n(f.get('model_dropped'))} samples "
+            f"dropped, pushed {_n(f.get('push_after_change_s'))} s and restored "
+            f"{_n(f.get('restored_s'))} s after the change, model node p99 "
+            f"{_n(_get(f, 'model_latency_ms', 'p99'))} ms")
+
+
+def _row_model(f: dict[str, Any]) -> tuple[str, str]:
+    lat = _get(f, "latency_ms") or _get(f, "model_latency_ms") or {}
+    return ("the model node alone (`dvt-bench model`)",
+            f"latency p50 {_n(_get(lat, 'p50'))} ms, p99 {_n(_get(lat, 'p99'))} ms")
+
+
+def _row_false(f: dict[str, Any]) -> tuple[str, str]:
+    return ("randomised clean plants (1 kHz and 62.5 Hz, three noise levels)",
+            f"{_n(f.get('false_acceptances'))} of {_n(f.get('clean_plants'))} accept an "
+            f"effect (95 % upper bound {_n(100 * f['upper_bound_95'], '.1f')} %)"
+            if isinstance(f.get("upper_bound_95"), (int, float)) else "?")
+
+
+def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
+    ident = _get(f, "closed_loop", "identification") or {}
+    acc = ident.get("accepted") if isinstance(ident, dict) else None
+    ep = _get(f, "episode", "figures") or {}
+    return ("the demo (`scripts/demo.sh`): closed loop, then the loop on its own",
+            f"accepted {', '.join(acc) if isinstance(acc, list) and acc else '?'}; live residual "
+            f"RMS {_pair(_get(f, 'closed_loop', 'live_residual_rms_before'), '.2f')} -> "
+            f"{_pair(_get(f, 'closed_loop', 'live_residual_rms_after'), '.2f')} rad/s; "
+            f"episode {ep.get('outcome', '?')}, restored {_n(ep.get('restored_s'))} s after "
+            "the change")
+
+
+ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
+    "emps": _row_emps, "identify": _row_identify, "hours": _row_hours, "loop": _row_loop,
+    "model": _row_model, "false_effects": _row_false, "demo": _row_demo}
+
+
+def table() -> str:
+    """The README's results table from ``docs/results/*.json`` (missing: "not run yet")."""
+    lines = ["| what | measured | command, commit, date |", "|---|---|---|"]
+    for name, row in ROWS.items():
+        path = OUT / f"{name}.json"
+        if not path.exists():
+            lines.append(f"| {name} | not run yet | `scripts/results.sh {name}` |")
+            continue
+        doc = json.loads(path.read_text())
+        what, figure = row(doc.get("figures") or {})
+        lines.append(f"| {what} | {figure} | [`{name}`](docs/results/{name}.json): "
+                     f"{doc.get('commit', '?')}, {str(doc.get('date', '?'))[:10]} |")
+    return "\n".join(lines)
+
+
+def write_table(readme: Path = ROOT / "README.md") -> None:
+    """Replace the README's table between :data:`BEGIN` and :data:`END` by :func:`table`."""
+    text = readme.read_text()
+    if BEGIN not in text or END not in text:
+        raise SystemExit(f"results: {readme} has no {BEGIN} ... {END} block")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    readme.write_text(f"{head}{BEGIN}\n{table()}\n{END}{tail}")
+
+
 def main(argv: list[str]) -> int:
+    if argv == ["table"]:
+        write_table()
+        return 0
     names = list(NAMES) if argv == ["all"] else argv
     bad = [n for n in names if n not in NAMES]
     if not names or bad:
@@ -132,6 +246,7 @@ def main(argv: list[str]) -> int:
         path = OUT / f"{name}.json"
         path.write_text(json.dumps(doc, indent=2, default=float) + "\n")
         print(f"results: {path.relative_to(ROOT)} ({doc['seconds']} s)", file=sys.stderr)
+    write_table()
     return 0
 
 

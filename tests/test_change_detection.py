@@ -125,10 +125,10 @@ class Listener:
 
 
 def _applied(truth: Path) -> list[dict[str, Any]]:
-    if not truth.exists():
-        return []
-    doc = yaml.safe_load(truth.read_text()) or {}
-    return list(doc.get("changes_applied") or [])
+    """The changes the plant applied, read through the recording's one truth reader."""
+    from dvt_model.recording import changes_applied, read_truth
+
+    return changes_applied(read_truth(truth.parent))
 
 
 def test_friction_step_is_detected(procs: Procs, rclpy_context: Any, tmp_path: Path) -> None:

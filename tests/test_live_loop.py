@@ -368,7 +368,10 @@ def test_crashed_refit_is_the_episodes_outcome_and_the_node_lives_on(procs, rclp
     assert "SIGKILL" in rep["reason"] and f"pid {killed[0]}" in rep["reason"], rep["reason"]
     assert not rep["pushed"] and not rep["rolled_back"]
     assert ident.poll() is None, procs.log(ident)[-3000:]
-    assert any(lvl == 2 and "refit_crashed" in m for lvl, m, _ in loop.steps), loop.steps[-3:]
+    # the step is its own /diagnostics message, published with the report: it may arrive
+    # after the report, so spin for it (bounded)
+    loop.spin_until(lambda: any(lvl == 2 and "refit_crashed" in m for lvl, m, _ in loop.steps),
+                    10.0, "the refit_crashed step (ERROR) on /diagnostics")
     # a new refit process, warm for the next episode, and the killed one reaped
     loop.spin_until(lambda: any(v.get("refit_processes_started") == "2"
                                 and v.get("refit_crashes") == "1" for _, _, v in loop.steps),

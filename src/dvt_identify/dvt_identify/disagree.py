@@ -89,8 +89,9 @@ class Agreement:
                 "z_limit": Z_LIMIT, "min_share": MIN_SHARE}
 
 
-def _driving_inputs(fit: OEFit) -> list[tuple[int, int]]:
-    """(input, state it drives most) for every input the structure's ``B`` drives."""
+def driving_inputs(fit: OEFit) -> list[tuple[int, int]]:
+    """(input, state it drives most) for every input the structure's ``B`` drives (the state
+    whose sign is the direction of motion of the member that input drives)."""
     m = fit.model
     _, B, _ = m.structure.matrices(fit.theta_[: m.n_struct])
     out = []
@@ -112,7 +113,7 @@ def record_bias(fit: OEFit, segs: Sequence[Segment]) -> RecordBias:
     if not segs:
         raise DataError("record_bias: no segments")
     m = fit.model
-    pairs = _driving_inputs(fit)
+    pairs = driving_inputs(fit)
     if not pairs:
         raise DataError("record_bias: the structure drives no input")
     w = fit.weights_
@@ -133,7 +134,7 @@ def record_bias(fit: OEFit, segs: Sequence[Segment]) -> RecordBias:
                 u = seg.u.copy()
                 u[:, j] += h * mask
                 try:
-                    yh = m.simulate(fit.theta_, _with_u(seg, u), x0)
+                    yh = m.simulate(fit.theta_, with_u(seg, u), x0)
                 except DivergedError:
                     yh = y0
                 parts.append(((yh - y0) / w).ravel() / h)
@@ -150,7 +151,8 @@ def record_bias(fit: OEFit, segs: Sequence[Segment]) -> RecordBias:
                       explained=float(max(0.0, 1.0 - float(e @ e) / rr)))
 
 
-def _with_u(seg: Segment, u: Array) -> Segment:
+def with_u(seg: Segment, u: Array) -> Segment:
+    """``seg`` with the inputs ``u`` (N, nu) in place of its own."""
     from dataclasses import replace
 
     return replace(seg, u=np.ascontiguousarray(u))
@@ -209,7 +211,7 @@ def _explained_by(fit: OEFit, segs: Sequence[Segment], d: Array) -> float:
     rem = 0.0
     m = fit.model
     w = fit.weights_
-    pairs = _driving_inputs(fit)
+    pairs = driving_inputs(fit)
     for seg in segs:
         x0 = fit.estimate_x0(seg)
         xs, y0 = m.simulate_states(fit.theta_, seg, x0)
@@ -220,7 +222,7 @@ def _explained_by(fit: OEFit, segs: Sequence[Segment], d: Array) -> float:
             u[:, j] += d[i] * (s > 0) + d[i + 1] * (s < 0)
             i += 2
         try:
-            yb = m.simulate(fit.theta_, _with_u(seg, u), x0)
+            yb = m.simulate(fit.theta_, with_u(seg, u), x0)
         except DivergedError:
             continue
         r0 = ((seg.y - y0) / w).ravel()

@@ -53,54 +53,45 @@ mode or pole of the linear structure the parameter moves most and the share of t
 there, how much longer a record would have to be (the predicted std falls as one over the
 square root of its length), or, for a parameter in a null direction, the parameters it moves
 only together with (a longer record does not help).
+
+The Fisher rule's sensitivities and figures are in :mod:`dvt_identify.fisher`, the advice in
+:mod:`dvt_identify.advice`.
 """
 
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from dvt_identify.advice import _band_share, _poles_moved, experiment_for, generic_advice
 from dvt_identify.data import Segment, _constant, decimate
 from dvt_identify.description import CandidateSpec, Description, ExperimentSpec
 from dvt_identify.effects import Effect
 from dvt_identify.effects.base import SegmentView
+from dvt_identify.fisher import (
+    COLOUR_FACTOR,
+    MAX_RELATIVE_STD,
+    _sensitivities,
+    _x0s,
+    predicted_std,
+)
 from dvt_identify.simulation import OEModel
-from dvt_identify.structures import ModelStructure, initial_state
 from dvt_identify.uncertainty import noise_floor
 
 Array = NDArray[np.float64]
 
 RESIDUAL_LEVEL = 0.03
 """Residual level assumed before fitting [output standard deviations]."""
-COLOUR_FACTOR = 10.0
-"""Inflation of white-noise parameter figures for coloured OE residuals."""
-MAX_RELATIVE_STD = 1.0
-"""A parameter whose predicted relative std exceeds this is not determined."""
 NO_INFLUENCE = 0.01
 """An effect that changes the simulated outputs by less than this times the residual level (at
 the probe point) is never engaged by the recording: its parameters are not determined (the
 effect stays in the fit)."""
 MAX_SAMPLES = 8000
 """The check runs on the estimation data decimated to about this many samples."""
-STATE_RCOND = 1e-9
-"""Relative tolerance of the pseudo-inverse that marginalises the initial states: a direction
-of the initial-state sensitivities with a singular value below this times the largest is one
-that no output sees (it is not projected out)."""
-NULL_RCOND = 1e-5
-"""A direction of the marginal parameter sensitivities with a singular value at most this times
-the largest is an exact null direction. Central differences with a relative step of 1e-3 leave
-an error of about 1e-6 of a column (measured on the two-mass drive: the exact scale direction of
-a sensor gain with the whole structure comes out at 4e-6, a parameter duplicated under another
-name at 2e-8); a genuinely weak direction sits far above (the dampers to ground of the two-mass
-drive, 2e-3)."""
-NULL_WEIGHT = 1e-3
-"""A parameter whose squared share in the null directions exceeds this lies in one (its
-predicted std is infinite); below, the share is the numerical mixing of nearby directions."""
 PROBE_STEPS = 100.0
 """An effect parameter at its null with no probe of the effect's own (:meth:`Effect.variants`)
 is probed at this many finite-difference steps from the null (its
@@ -109,21 +100,6 @@ within its bounds: a sensor gain at 0.1, a measurement delay at its ``max_delay`
 NOISE_ONLY_SHARE = 0.5
 """An input whose structured share (:func:`dvt_identify.uncertainty.noise_floor`) is below
 this carries only sensor noise: the run never used it."""
-
-
-def experiment_for(name: str, table: Sequence[ExperimentSpec]) -> tuple[str, str] | None:
-    """The experiment (command or procedure) and what it excites for parameter ``name``: the
-    first row of ``table`` (a description's ``experiments``) whose pattern matches, its named
-    groups filled into ``excites``; ``None`` when no row matches."""
-    for row in table:
-        m = re.search(row.parameters, name)
-        if m:
-            groups = {k: (v or "") for k, v in m.groupdict().items()}
-            try:
-                return row.run, row.excites.format(**groups)
-            except (KeyError, IndexError, ValueError):
-                return row.run, row.excites
-    return None
 
 
 @dataclass(frozen=True)
@@ -332,230 +308,6 @@ def probe_values(eff: Effect, view: SegmentView) -> Array:
         p[i] = up if up != spec.null else max(spec.null - PROBE_STEPS * abs(h), spec.lower)
     return np.clip(p, [s.lower for s in eff.params], [s.upper for s in eff.params])
 
-
-def _x0s(segs: Sequence[Segment], model: OEModel | None = None) -> list[Array]:
-    y0s = [np.asarray(s.y[: min(3, s.n)].mean(axis=0), float) for s in segs]
-    return y0s if model is None else [initial_state(model.structure, y) for y in y0s]
-
-
-def _sensitivities(model: OEModel, theta: Array, segs: Sequence[Segment], w: Array,
-                   rel_step: float = 1e-3) -> Array:
-    """Columns: d(yhat/w)/d(log theta_i) for every parameter, then d/dx0 per segment."""
-    x0s = _x0s(segs, model)
-
-    def sim(th: Array, xs: Sequence[Array]) -> Array:
-        with np.errstate(all="ignore"):
-            return np.concatenate([(model.simulate(th, s, x) / w).ravel()
-                                   for s, x in zip(segs, xs, strict=True)])
-    cols = []
-    for i in range(theta.size):
-        scale = abs(float(theta[i])) or 1.0
-        h = rel_step * scale
-        spec = model.specs[i]
-        hi = min(theta[i] + h, spec.upper)
-        lo = max(theta[i] - h, spec.lower)
-        tp, tm = theta.copy(), theta.copy()
-        tp[i], tm[i] = hi, lo
-        if hi <= lo:
-            cols.append(np.zeros(sum(s.y.size for s in segs)))
-            continue
-        cols.append((sim(tp, x0s) - sim(tm, x0s)) / (hi - lo) * scale)
-    wx = w if model.C is None else np.full(model.nx, float(np.max(w)))  # hidden states
-    for k in range(len(segs)):
-        for j in range(model.nx):
-            h = 1e-3 * float(wx[j])
-            xp = [x.copy() for x in x0s]
-            xm = [x.copy() for x in x0s]
-            xp[k][j] += h
-            xm[k][j] -= h
-            cols.append((sim(theta, xp) - sim(theta, xm)) / (2 * h) * float(wx[j]))
-    return np.asarray(np.nan_to_num(np.column_stack(cols)))
-
-
-def marginal_information(J: Array, n_params: int) -> tuple[Array, Array, NDArray[np.bool_]]:
-    """The parameters' information with the initial states marginalised, as an SVD.
-
-    Args:
-        J: sensitivities, shape (m, n_params + n_states): the parameters' columns first.
-        n_params: number of parameter columns.
-
-    Returns:
-        ``(s, V, null)``: singular values (n_params,), right singular vectors as columns
-        (n_params, n_params) of the parameter columns projected on the orthogonal complement
-        of the initial-state columns (:data:`STATE_RCOND`), and which directions are null
-        (:data:`NULL_RCOND`).
-    """
-    Jp, Jx = J[:, :n_params], J[:, n_params:]
-    if Jx.shape[1]:
-        U, sx, _ = np.linalg.svd(Jx, full_matrices=False)
-        seen = sx > STATE_RCOND * float(sx[0]) if sx.size and sx[0] > 0 else sx > math.inf
-        Ux = U[:, seen]
-        Jp = Jp - Ux @ (Ux.T @ Jp)
-    if Jp.shape[0] < n_params:  # fewer rows than parameters: pad, the rest is null
-        Jp = np.vstack([Jp, np.zeros((n_params - Jp.shape[0], n_params))])
-    _, s, Vt = np.linalg.svd(Jp, full_matrices=False)
-    top = float(s[0]) if s.size else 0.0
-    null = s <= NULL_RCOND * top if top > 0 else np.ones(s.size, dtype=bool)
-    return np.asarray(s, float), np.asarray(Vt.T, float), np.asarray(null, bool)
-
-
-def predicted_std(J: Array, n_params: int, sigma: float) -> tuple[Array, list[list[int]]]:
-    """Inflated predicted relative std of each parameter (module docstring, Fisher rule) and,
-    for one in a null direction (``inf``), the other parameters of that direction.
-
-    Args:
-        J: sensitivities, shape (m, n_params + n_states).
-        n_params: number of parameter columns.
-        sigma: residual level [output standard deviations].
-    """
-    s, V, null = marginal_information(J, n_params)
-    Vn = V[:, null]
-    weight = np.sum(Vn ** 2, axis=1)
-    live = ~null
-    inv = np.sum(V[:, live] ** 2 / s[live] ** 2, axis=1) if np.any(live) else np.zeros(n_params)
-    rel = COLOUR_FACTOR * sigma * np.sqrt(inv)
-    in_null = weight > NULL_WEIGHT
-    rel = np.where(in_null, np.inf, rel)
-    P = Vn @ Vn.T
-    partners = [[j for j in range(n_params) if j != i and in_null[j]
-                 and abs(float(P[i, j])) > NULL_WEIGHT] if in_null[i] else []
-                for i in range(n_params)]
-    return rel, partners
-
-
-@dataclass(frozen=True)
-class _Pole:
-    """The eigenvalue of the linear part a parameter moves most (relative to its size)."""
-
-    lam: complex
-    mode: int  # 1-based index among the oscillating modes (slowest first); 0 for a real pole
-
-    def where(self) -> str:
-        f = abs(self.lam) / (2 * math.pi)
-        if self.mode:
-            zeta = -self.lam.real / abs(self.lam)
-            return f"mode {self.mode} near {f:.3g} Hz (damping ratio {zeta:.2g})"
-        return f"the pole at {f:.3g} Hz (time constant {1 / abs(self.lam):.3g} s)"
-
-    def band(self) -> tuple[float, float]:
-        """Frequency band [Hz] that excites it: around a mode, below twice a real pole."""
-        f = abs(self.lam) / (2 * math.pi)
-        return (f / 1.5, 1.5 * f) if self.mode else (0.0, 2.0 * f)
-
-    def band_words(self) -> str:
-        lo, hi = self.band()
-        if self.mode:
-            return f"between {lo:.3g} and {hi:.3g} Hz"
-        return f"below {hi:.3g} Hz (inputs held longer than {1 / abs(self.lam):.3g} s)"
-
-
-def _poles_moved(structure: ModelStructure, theta: Array) -> list[_Pole | None]:
-    """For each structure parameter, the eigenvalue of ``A`` it moves most relative to the
-    eigenvalue's size (first-order eigenvalue sensitivity ``(V^-1 dA V)_kk`` to a relative
-    change), ignoring zero eigenvalues (a free angle); ``None`` when it moves none or ``A`` is
-    not diagonalisable."""
-    none: list[_Pole | None] = [None] * theta.size
-    try:
-        A = np.asarray(structure.matrices(theta)[0], dtype=float)
-        lam, V = np.linalg.eig(A)
-        if not np.all(np.isfinite(lam)) or np.linalg.cond(V) > 1e10:
-            return none
-        Vinv = np.linalg.inv(V)
-    except (np.linalg.LinAlgError, ValueError):
-        return none
-    size = np.abs(lam)
-    live = (size > 1e-9 * max(float(size.max(initial=0.0)), 1e-300)) & (lam.imag >= 0)
-    oscill = sorted((k for k in range(lam.size) if live[k] and lam[k].imag > 1e-9),
-                    key=lambda k: size[k])
-    out: list[_Pole | None] = []
-    for i in range(theta.size):
-        scale = abs(float(theta[i])) or 1.0
-        h = 1e-6 * scale
-        tp = theta.copy()
-        tp[i] += h
-        try:
-            dA = (np.asarray(structure.matrices(tp)[0], dtype=float) - A) / h * scale
-        except (np.linalg.LinAlgError, ValueError):
-            out.append(None)
-            continue
-        d = np.abs(np.einsum("ij,jk,ki->i", Vinv, dA, V)) / np.maximum(size, 1e-300)
-        d = np.where(live, d, 0.0)
-        k = int(np.argmax(d)) if d.size else 0
-        if not d.size or d[k] <= 1e-9:
-            out.append(None)
-            continue
-        out.append(_Pole(complex(lam[k]), oscill.index(k) + 1 if k in oscill else 0))
-    return out
-
-
-def _band_share(segments: Sequence[Segment], lo: float, hi: float) -> float:
-    """Share of the inputs' power (each varying input's own, averaged) within ``[lo, hi]`` Hz
-    in ``segments`` (their periodograms pooled); 0 when no input varies."""
-    if not segments:
-        return 0.0
-    shares = []
-    for j in range(segments[0].u.shape[1]):
-        inside = total = 0.0
-        for s in segments:
-            u = s.u[:, j] - float(np.mean(s.u[:, j]))
-            p = np.abs(np.fft.rfft(u)) ** 2
-            f = np.fft.rfftfreq(u.size, s.dt)
-            inside += float(np.sum(p[(f >= lo) & (f <= hi) & (f > 0)]))
-            total += float(np.sum(p[f > 0]))
-        if total > 0:
-            shares.append(inside / total)
-    return float(np.mean(shares)) if shares else 0.0
-
-
-def generic_advice(name: str, kind: str, rel_std: float, *, partners: Sequence[str] = (),
-                   effect: str = "", pole: _Pole | None = None, share: float = 0.0,
-                   seconds: float = 0.0, input_name: str = "", influence: float = 0.0,
-                   probe: float | None = None) -> tuple[str, str]:
-    """What would determine parameter ``name``, from the data and the model, when the
-    description names no experiment for it: ``(what to record, why)``.
-
-    Args:
-        name: the parameter.
-        kind: why it is not determined: ``unused`` (its effect's input never varies),
-            ``quiet`` (its effect is never engaged), ``null`` (in a null direction), ``weak``
-            (a finite predicted relative std above :data:`MAX_RELATIVE_STD`).
-        rel_std: its predicted relative std.
-        partners: the parameters it moves the outputs only together with (``null``).
-        effect: label of its effect ("" for the structure).
-        pole: the mode or pole of the linear part it moves most (structure parameters).
-        share: share of the input power that excites that pole in this recording.
-        seconds: length of this recording [s].
-        input_name: its effect's input (``unused``).
-        influence: its effect's influence at the probe [output std] (``quiet``, ``null``).
-        probe: the probe value of the parameter (``quiet``, ``null``).
-    """
-    if kind == "unused":
-        return (f"a record that uses input {input_name}",
-                f"{effect} acts only when {input_name} varies")
-    if kind == "quiet":
-        at = f"{name} = {probe:.3g}" if probe is not None else "its prior"
-        return (f"a record in which {effect} acts",
-                f"at {at} it changes the outputs of this one by {influence:.2g} output std")
-    if kind == "null":
-        if partners:
-            return (f"an experiment that moves {name} differently from "
-                    f"{', '.join(partners)}: a further sensor or input (a longer record does "
-                    "not help)", f"the outputs see {name} only together with them")
-        if effect and probe is not None:
-            return (f"a prior where {effect} acts (e.g. {name} {probe:.3g} in its `initial`)",
-                    f"at its prior no output responds to it, at {probe:.3g} the outputs "
-                    f"change by {influence:.2g} output std")
-        return (f"an input or sensor that {name} acts on",
-                "no output of this recording responds to it")
-    factor = (rel_std / MAX_RELATIVE_STD) ** 2 if math.isfinite(rel_std) else math.inf
-    longer = f"a record about {factor:.2g} x as long ({factor * seconds:.3g} s)"
-    if pole is not None:
-        return (f"more excitation {pole.band_words()}: a richer input there, or {longer}",
-                f"{name} moves {pole.where()} most; this recording puts {100 * share:.2g} % "
-                "of its input power there")
-    what = f"{effect} engaged more often" if effect else "a richer input"
-    return (f"{what}, or {longer}",
-            f"the predicted std of {name} falls as one over the root of the record length")
 
 
 def advice_for(name: str, desc: Description, result: Identifiability | None = None) -> str:

@@ -23,24 +23,25 @@
    scatter of a coloured residual does not. Up to
    ``max_tries_per_round`` significant candidates are refitted per round, strongest score first;
    of those that pass, the simplest one that is as good on validation as the one with the largest
-   LR is accepted (:func:`choose`: a local score can misjudge a large effect, the refit cannot;
-   and two laws that fit the data equally well are told apart by parsimony, not by a
-   likelihood difference within the noise). Repeat until a round accepts nothing.
+   LR is accepted (:func:`~dvt_identify.selection.choose`: a local score can misjudge a large
+   effect, the refit cannot; and two laws that fit the data equally well are told apart by
+   parsimony, not by a likelihood difference within the noise). Repeat until a round accepts
+   nothing.
 
 With coloured residuals LM and LR overstate significance (they assume white errors), which is why
 acceptance also needs the validation test (its variance is HAC, so colour does not fool it).
 
 **No false cause.** Significance is not enough: (d) an accepted effect must remove at least
-:data:`MIN_EXPLAINED` of the *structured* part of the validation residual (its variance above
-the sensor noise floor, :func:`dvt_identify.resid.residual_floors`), weighted like the
-validation test; the share is in every decision's ledger entry (``explained_share``). And the
-loop stops when its own residual verdict says there is nothing left: every output's validation
-residual has less than :data:`~dvt_identify.resid.STRUCTURED_SHARE` of its variance above the
-noise floor (the threshold the report uses to call a residual structured) and no candidate's
-score sees structure the first difference misses (:data:`FLOOR_OVERRIDE`).
-Measured before these rules (independent simulated plant, clean run): Stribeck friction
-(+0.015 fit points) and windage (+0.003) accepted while the report called the residual at the
-noise floor.
+:data:`~dvt_identify.stages.MIN_EXPLAINED` of the *structured* part of the validation residual
+(its variance above the sensor noise floor, :func:`dvt_identify.resid.residual_floors`),
+weighted like the validation test; the share is in every decision's ledger entry
+(``explained_share``). And the loop stops when its own residual verdict says there is nothing
+left: every output's validation residual has less than
+:data:`~dvt_identify.resid.STRUCTURED_SHARE` of its variance above the noise floor (the
+threshold the report uses to call a residual structured) and no candidate's score sees structure
+the first difference misses (:data:`FLOOR_OVERRIDE`). Measured before these rules (independent
+simulated plant, clean run): Stribeck friction (+0.015 fit points) and windage (+0.003) accepted
+while the report called the residual at the noise floor.
 
 **Cross-validated selection** (``cross_validate=True``, ``dvt-identify --select-on cv``): with
 k >= 2 estimation bags and no validation data, the "validation" simulation of every stage is
@@ -60,10 +61,8 @@ effect (they would only mimic the drift) and the report names the drift.
 from __future__ import annotations
 
 import math
-import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -71,40 +70,44 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from dvt_identify.data import Segment
-from dvt_identify.description import Description, FitOptions
+from dvt_identify.description import Description
 from dvt_identify.drift import DriftReport, drift_check
-from dvt_identify.effects import Effect, SegmentView
+from dvt_identify.effects import SegmentView
 from dvt_identify.errors import DataError, FitError
 from dvt_identify.fit import OEFit, Progress, fit_segments
 from dvt_identify.identifiability import Identifiability
 from dvt_identify.linref import ReferenceStage, fit_reference, mapped_starts
-from dvt_identify.metrics import Figures, figures
+from dvt_identify.metrics import Figures
 from dvt_identify.parallel import fork_map
-from dvt_identify.resid import (
-    STRUCTURED_SHARE,
-    OutputResidual,
-    Spectrum,
-    residual_analysis,
-    residual_floors,
-    residual_spectrum,
-)
-from dvt_identify.scoring import (
-    CandidateScore,
-    score_candidates,
+from dvt_identify.resid import STRUCTURED_SHARE
+from dvt_identify.scoring import CandidateScore, score_candidates
+from dvt_identify.selection import (
+    at_noise_floor,
+    choose,
+    explained_share,
+    lr_text,
+    stage_floors,
+    validation_test,
 )
 from dvt_identify.simulation import OEModel
-from dvt_identify.uncertainty import Comparison, diebold_mariano
+from dvt_identify.stages import (
+    CV_MIN_BAGS,
+    LIKELY_GAIN,
+    MIN_EXPLAINED,
+    Decision,
+    IdentificationResult,
+    LoopConfig,
+    Stage,
+    bag_of,
+    cv_folds,
+    fold_fits,
+    make_stage,
+)
+
+__all__ = ["Decision", "IdentificationResult", "LoopConfig", "Stage", "identify",
+           "stage_floors"]
 
 Array = NDArray[np.float64]
-MIN_EXPLAINED = 0.10
-"""Least share of the validation residual's structured variance (above the sensor noise floor)
-an accepted effect must remove (rule (d) of the module docstring)."""
-LIKELY_GAIN = 0.2
-"""A candidate whose refit cuts the validation loss by at least this share (relative), is
-admissible and removes at least :data:`MIN_EXPLAINED` of the structured residual, but misses
-significance (the validation test, or LR/BIC on the estimation data) is reported as "likely,
-not proven" with its figures (short records: the test lacks the samples, not the effect the
-size)."""
 FLOOR_OVERRIDE = 0.15
 """A residual the first-difference verdict calls at the noise floor still gets its round when a
 candidate's score explains at least this share of it (or a sensor map shows its signature):
@@ -117,203 +120,6 @@ Coulomb steps are in, a spurious sun periodic term explains 10.5 %
 which 0.10 let through: 0.15 sits between that and the ripple's 25 %)."""
 
 
-@dataclass(frozen=True)
-class LoopConfig:
-    """Options of :func:`identify`.
-
-    Attributes:
-        starts: starts of the baseline fit.
-        refit_starts: starts of each candidate refit (the first from the current optimum plus
-            the candidate's implied gain).
-        alpha: significance level of the LM screen, the LR test and the validation test.
-        min_validation_gain: an optional floor on the mean validation fit gain [% points]
-            on top of the validation test (default 0: none; the description's
-            ``fit.min_validation_gain`` is not used, the test replaces it).
-        drift_windows: windows of the drift check (< 3: no check).
-        drift_min_change: smallest relative change over the recording called a drift.
-        max_effects: most effects accepted.
-        max_tries_per_round: candidates refitted per round before giving up.
-        augment: run the augment loop (False: baseline only).
-        lags: residual-analysis lags.
-        seed: random seed of the multi-start perturbations.
-        fit_decimate: decimation of the estimation data for fitting/scoring.
-        init_window: 0: each segment's initial state is estimated (free in the fit, from the
-            segment's start with the parameters fixed elsewhere); ``n > 0``: every
-            simulation starts from the state its first ``n`` samples give, in the fit, the
-            selection and the test alike (:class:`~dvt_identify.fit.OEFit`).
-        reference: fit the black-box linear reference beside the physical model
-            (:mod:`dvt_identify.linref`), score it the same way and start the physical fit
-            also from the structure its frequency response maps to.
-        reference_max_order: highest order of the linear reference.
-    """
-
-    starts: int = 4
-    refit_starts: int = 2
-    alpha: float = 0.01
-    min_validation_gain: float = 0.0
-    max_effects: int = 4
-    max_tries_per_round: int = 3
-    augment: bool = True
-    lags: int = 25
-    seed: int = 0
-    fit_decimate: int = 1
-    drift_windows: int = 4
-    drift_min_change: float = 0.10
-    init_window: int = 0
-    reference: bool = True
-    reference_max_order: int = 4
-
-    @classmethod
-    def from_options(cls, opts: FitOptions, fit_decimate: int = 1) -> LoopConfig:
-        """Config from a description's ``fit`` section (override fields with
-        :func:`dataclasses.replace`)."""
-        return cls(starts=opts.starts, refit_starts=opts.refit_starts, alpha=opts.alpha,
-                   max_effects=opts.max_effects,
-                   max_tries_per_round=opts.max_tries_per_round, seed=opts.seed,
-                   fit_decimate=fit_decimate)
-
-
-@dataclass
-class Stage:
-    """A fitted model with its figures on estimation (full rate) and validation data.
-
-    Attributes:
-        label: ``baseline`` or ``+effect@where``.
-        fit: the :class:`OEFit`.
-        est, val: :class:`Figures` on estimation / validation data.
-        est_pred, val_pred: simulated outputs per segment.
-        val_x0: estimated initial states of the validation segments.
-        resid_est, resid_val: residual analyses.
-        spectrum_val: residual spectrum of each output on validation data.
-        folds: with cross-validated selection, the model refitted without each estimation
-            bag in turn (:func:`cv_folds` order); its ``val_pred`` are their out-of-sample
-            simulations of the left-out bags. Empty otherwise.
-    """
-
-    label: str
-    fit: OEFit
-    est: Figures
-    val: Figures
-    est_pred: list[Array]
-    val_pred: list[Array]
-    val_x0: list[Array]
-    resid_est: list[OutputResidual]
-    resid_val: list[OutputResidual]
-    spectrum_val: list[Spectrum]
-    folds: list[OEFit] = field(default_factory=list)
-
-    @property
-    def effects(self) -> tuple[Effect, ...]:
-        """Effects in the model."""
-        return self.fit.model.effects
-
-    def parameters(self) -> dict[str, float]:
-        """Physical parameters by name."""
-        return self.fit.parameters()
-
-    def linear(self) -> tuple[Array, Array]:
-        """``A``, ``B`` of the linear part."""
-        A, B, _ = self.fit.model.structure.matrices(self.fit.theta_[: self.fit.model.n_struct])
-        return A, B
-
-
-@dataclass
-class Decision:
-    """Outcome of one candidate refit.
-
-    Attributes:
-        round: 1-based round.
-        score: the score that put the candidate forward.
-        accepted: whether it was added.
-        reason: plain-text reason.
-        lr, lr_threshold, dof: likelihood-ratio statistic, chi2 threshold, added parameters.
-        delta_bic: BIC(new) - BIC(old) on the estimation (fit) data.
-        val_fit_before, val_fit_after: mean validation fit [%].
-        validation: Diebold-Mariano comparison of the validation errors (before vs after).
-        stage: the refitted model (``None`` if the refit failed).
-        explained_share: share of the validation residual's structured variance the effect
-            removed (:func:`explained_share`; rule (d)).
-        likely: rejected only for want of significance although its gain is large
-            (:data:`LIKELY_GAIN`): "likely, not proven".
-    """
-
-    round: int
-    score: CandidateScore
-    accepted: bool
-    reason: str
-    lr: float = math.nan
-    lr_threshold: float = math.nan
-    dof: int = 0
-    delta_bic: float = math.nan
-    val_fit_before: float = math.nan
-    val_fit_after: float = math.nan
-    validation: Comparison | None = None
-    stage: Stage | None = None
-    explained_share: float = math.nan
-    likely: bool = False
-
-    def as_dict(self) -> dict[str, object]:
-        """JSON-ready summary (with the validation test's gain, statistic and p-value)."""
-        out: dict[str, object] = {
-            "round": self.round, "candidate": self.score.label, "accepted": self.accepted,
-            "reason": self.reason, "lr": self.lr, "lr_threshold": self.lr_threshold,
-            "dof": self.dof, "delta_bic": self.delta_bic,
-            "validation_fit_before": self.val_fit_before,
-            "validation_fit_after": self.val_fit_after,
-            "validation_fit_gain": self.val_fit_after - self.val_fit_before,
-            "explained_share": self.explained_share if math.isfinite(self.explained_share)
-            else None, "min_explained_share": MIN_EXPLAINED,
-            "likely_not_proven": self.likely}
-        if self.validation is not None:
-            v = self.validation
-            out["validation_test"] = {
-                "test": "Diebold-Mariano, one-sided, HAC (Bartlett) variance",
-                "loss_reduction_relative": v.relative_gain, "loss_reduction": v.gain,
-                "statistic": v.stat, "p_value": v.p_value, "bandwidth": v.bandwidth}
-        return out
-
-
-@dataclass
-class IdentificationResult:
-    """Everything the report needs."""
-
-    description: Description
-    estimation_bags: list[str]
-    validation_bags: list[str]
-    baseline: Stage
-    final: Stage
-    rounds: list[list[CandidateScore]]
-    decisions: list[Decision]
-    config: LoopConfig
-    seconds: float
-    fit_dt: float
-    notes: list[str]
-    val_segments: list[Segment] = field(default_factory=list)
-    identifiability: Identifiability | None = None
-    drift: DriftReport | None = None
-    data_warnings: list[str] = field(default_factory=list)
-    est_segments: list[Segment] = field(default_factory=list)
-    test: Any = None
-    """Figures on test data read after every choice (:class:`dvt_identify.series.TestFigures`)."""
-    reference: ReferenceStage | None = None
-    """The black-box linear reference scored like the physical model (``None``: not fitted)."""
-    agreement: Any = None
-    """Whether the test records agree with the estimation records
-    (:class:`dvt_identify.disagree.Agreement`; ``None`` without test records)."""
-    selection: str = "validation"
-    """Which data chose the effects: ``validation`` (the validation bags), ``holdout`` (the
-    held-out end of each estimation segment) or ``cv`` (leave-one-bag-out cross-validation
-    across the estimation bags; the validation figures are then out-of-fold)."""
-
-    @property
-    def accepted(self) -> list[Decision]:
-        """Accepted decisions in order."""
-        return [d for d in self.decisions if d.accepted]
-
-
-# ---------------------------------------------------------------------------------------------
-
-
 def _seg_losses(fit: OEFit, segments: Sequence[Segment]) -> tuple[Array, int, int]:
     """Mean squared weighted residual per output (ny,), N, ny.
 
@@ -324,89 +130,6 @@ def _seg_losses(fit: OEFit, segments: Sequence[Segment]) -> tuple[Array, int, in
     e = fit.residual_.reshape(-1, ny)
     return np.mean(e ** 2, axis=0), e.shape[0], ny
 
-
-def make_stage(label: str, fit: OEFit, est: Sequence[Segment], val: Sequence[Segment],
-               same_rate: bool, lags: int = 25,
-               folds: tuple[Sequence[OEFit], Sequence[Sequence[int]]] | None = None) -> Stage:
-    """Evaluate ``fit`` on the full-rate estimation and the validation segments.
-
-    ``folds`` (cross-validated selection, ``val`` then the estimation segments): the fold fits
-    and the segment indices each one left out; every validation segment is then simulated by
-    the fold fit that did not see it (out of sample)."""
-    m = fit.model
-    est_x0 = fit.x0_ if same_rate else [fit.estimate_x0(s) for s in est]
-    est_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(est, est_x0, strict=True)]
-    if folds is None:
-        val_x0 = [fit.estimate_x0(s) for s in val]
-        val_pred = [m.simulate(fit.theta_, s, x0) for s, x0 in zip(val, val_x0, strict=True)]
-    else:
-        val_x0, val_pred = _out_of_fold(folds[0], folds[1], val)
-    names = est[0].output_names
-    inames = est[0].input_names
-    k = fit.n_estimated_
-    fe = figures([s.y for s in est], est_pred, k, names)
-    fv = figures([s.y for s in val], val_pred, k, names)
-    re = residual_analysis([s.y - p for s, p in zip(est, est_pred, strict=True)],
-                           [s.u for s in est], names, inames, lags)
-    rv = residual_analysis([s.y - p for s, p in zip(val, val_pred, strict=True)],
-                           [s.u for s in val], names, inames, lags)
-    sp = [residual_spectrum([(s.y - p)[:, j] for s, p in zip(val, val_pred, strict=True)],
-                            val[0].dt) for j in range(len(names))]
-    return Stage(label=label, fit=fit, est=fe, val=fv, est_pred=est_pred, val_pred=val_pred,
-                 val_x0=val_x0, resid_est=re, resid_val=rv, spectrum_val=sp,
-                 folds=[] if folds is None else list(folds[0]))
-
-
-CV_MIN_BAGS = 2
-"""Fewest estimation bags for leave-one-bag-out cross-validated selection."""
-
-
-def bag_of(name: str) -> str:
-    """The bag a segment came from: its name without the ``#<k>`` suffix of a bag split at a
-    gap (:func:`dvt_identify.data.load_bag_segments`)."""
-    return re.sub(r"#\d+$", "", name)
-
-
-def cv_folds(est: Sequence[Segment]) -> list[list[int]]:
-    """Segment indices of each estimation bag (the folds of leave-one-bag-out), bags in order
-    of first appearance; the segments of a bag split at gaps stay together."""
-    folds: dict[str, list[int]] = {}
-    for i, s in enumerate(est):
-        folds.setdefault(bag_of(s.name), []).append(i)
-    return list(folds.values())
-
-
-def fold_fits(fit: OEFit, fit_segs: Sequence[Segment], folds: Sequence[Sequence[int]],
-              seed: int = 0) -> list[OEFit]:
-    """``fit``'s model refitted without each fold in turn (one start, warm from ``fit``'s
-    optimum, the same output weights: a local refinement to the fold's optimum).
-
-    Raises:
-        FitError: a fold's refit failed (naming the left-out bag).
-    """
-    out = []
-    for held in folds:
-        train = [s for i, s in enumerate(fit_segs) if i not in held]
-        try:
-            out.append(OEFit(fit.model, starts=1, seed=seed, theta0=fit.theta_.copy(),
-                             weights=fit.weights_, more_starts=0,
-                             init_window=fit.init_window).fit(train))
-        except FitError as exc:
-            raise FitError(f"cross-validation fold without {bag_of(fit_segs[held[0]].name)}: "
-                           f"{exc}") from exc
-    return out
-
-
-def _out_of_fold(fits: Sequence[OEFit], folds: Sequence[Sequence[int]],
-                 segs: Sequence[Segment]) -> tuple[list[Array], list[Array]]:
-    """Initial states and simulations of every segment by the fold fit that left it out."""
-    x0s: list[Array] = [np.zeros(0)] * len(segs)
-    preds: list[Array] = [np.zeros(0)] * len(segs)
-    for ff, held in zip(fits, folds, strict=True):
-        for i in held:
-            x0s[i] = ff.estimate_x0(segs[i])
-            preds[i] = ff.model.simulate(ff.theta_, segs[i], x0s[i])
-    return x0s, preds
 
 
 def _struct_guesses(fit_segments: Sequence[Segment], desc: Description) -> list[Array]:
@@ -721,196 +444,3 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
                     val_fit_before=before, val_fit_after=after, validation=dm, stage=stage,
                     explained_share=share, likely=likely)
 
-
-def lr_text(lr: float, thr: float) -> str:
-    """The reason for a likelihood ratio not above its threshold. A ratio <= 0 (the refit's
-    loss did not decrease: a local optimum, or the extra parameters cannot help) is shown as 0,
-    "no improvement"; the raw value stays in the report's JSON (``lr``)."""
-    if not lr > 0:
-        return f"no improvement (LR 0 <= chi2 threshold {thr:.3g})"
-    return f"LR {lr:.3g} <= chi2 threshold {thr:.3g}"
-
-
-def validation_test(old: Stage, new: Stage, val: Sequence[Segment]) -> Comparison:
-    """Diebold-Mariano test of ``new``'s validation simulation error against ``old``'s (loss:
-    squared error per sample weighted by ``1 / std(y_j)^2``, summed over outputs)."""
-    e_old = [s.y - p for s, p in zip(val, old.val_pred, strict=True)]
-    e_new = [s.y - p for s, p in zip(val, new.val_pred, strict=True)]
-    return diebold_mariano(e_old, e_new, weights=1.0 / old.fit.weights_ ** 2)
-
-
-def stage_floors(stage: Stage, val: Sequence[Segment]) -> list[Any]:
-    """Noise floor and structured share of each output's validation residual of ``stage``
-    (:func:`dvt_identify.resid.residual_floors`)."""
-    A, B = stage.linear()
-    return residual_floors(A, B, stage.fit.model.C, val, stage.val_pred)
-
-
-def at_noise_floor(floors: Sequence[Any]) -> bool:
-    """Whether every output's residual has less than ``STRUCTURED_SHARE`` of its variance
-    above the sensor noise floor (a share that cannot be computed counts as structured)."""
-    return bool(floors) and all(f.structured_share < STRUCTURED_SHARE for f in floors)
-
-
-def explained_share(old: Stage, new: Stage, val: Sequence[Segment], floors: Sequence[Any]
-                    ) -> float:
-    """Share of ``old``'s structured validation variance (above the noise floor, ``floors``:
-    :func:`stage_floors` of ``old``) that ``new`` removes, outputs weighted by ``1 / std(y)^2``
-    as in the validation test: ``sum_j (var_old_j - var_new_j) / w_j^2`` over
-    ``sum_j (var_old_j - floor_j^2) / w_j^2`` (negative when ``new`` is worse; ``nan`` when
-    nothing of ``old``'s residual is above the floor); at most 1 (the floor is an upper bound
-    on the white part, so the structured variance a lower bound)."""
-    w = old.fit.weights_
-    num = den = 0.0
-    for j in range(len(floors)):
-        e_old = np.concatenate([(s.y - p)[:, j] for s, p in zip(val, old.val_pred, strict=True)])
-        e_new = np.concatenate([(s.y - p)[:, j] for s, p in zip(val, new.val_pred, strict=True)])
-        v_old, v_new = float(np.var(e_old)), float(np.var(e_new))
-        floor = float(floors[j].floor_rms) ** 2
-        if not (math.isfinite(v_old) and math.isfinite(v_new) and math.isfinite(floor)):
-            continue
-        num += (v_old - v_new) / w[j] ** 2
-        den += max(v_old - floor, 0.0) / w[j] ** 2
-    return min(num / den, 1.0) if den > 0 else math.nan
-
-
-def shape_parameters(effect: Effect) -> tuple[str, ...]:
-    """Names of ``effect``'s estimated shape parameters: those that are neither gains
-    (:meth:`Effect.gain_names`: the effect vanishes at their null values and the scorer
-    regresses on them) nor held fixed (:meth:`Effect.fixed_names`). A shape parameter (a
-    Stribeck speed, a contact frequency, a damping ratio) enters the model nonlinearly and only
-    shapes an effect a gain makes present; the scorer scans it instead of regressing on it."""
-    plain = set(effect.gain_names()) | set(effect.fixed_names())
-    return tuple(s.name for s in effect.params if s.name not in plain)
-
-
-@dataclass(frozen=True)
-class Choice:
-    """Which of a round's passing trials is accepted (:func:`choose`).
-
-    Attributes:
-        chosen: the trial to accept.
-        largest_lr: the passing trial with the largest LR (the reference of the tie test).
-        tied: the passing trials as good on validation as ``largest_lr`` (it included), in
-            input order.
-        comparisons: for each passing trial, in input order, the Diebold-Mariano test of
-            ``largest_lr``'s validation error against the trial's (:func:`validation_test`
-            with the trial as the old model; ``None`` for ``largest_lr`` itself).
-        losers: every other passing trial, in input order, with why it lost (a clause that
-            reads after "passes (...) but").
-    """
-
-    chosen: Decision
-    largest_lr: Decision
-    tied: list[Decision]
-    comparisons: list[Comparison | None]
-    losers: list[tuple[Decision, str]]
-
-    @property
-    def p_values(self) -> list[float]:
-        """One-sided p-value of ``largest_lr``'s validation error being smaller than each
-        trial's, in input order (1 for ``largest_lr`` itself)."""
-        return [1.0 if c is None else c.p_value for c in self.comparisons]
-
-
-def complexity(d: Decision) -> tuple[int, int]:
-    """A trial's complexity: (estimated parameters it adds, estimated shape parameters among
-    them, :func:`shape_parameters`); smaller is simpler, compared in that order."""
-    return d.dof, len(shape_parameters(d.score.effect))
-
-
-def choose(passing: Sequence[Decision], val: Sequence[Segment], alpha: float) -> Choice:
-    """Choose the trial to accept among a round's passing trials (all refitted from the same
-    model): the simplest of those as good on validation as the one with the largest LR.
-
-    The trial with the largest LR is the reference. A trial is *tied* with it when the
-    reference's validation error is not significantly smaller than the trial's (one-sided
-    Diebold-Mariano test at ``alpha``, :func:`validation_test`; in cross-validated selection
-    ``val`` are the estimation segments and the stages' ``val_pred`` are out of fold). Among
-    the tied trials the chosen one has the fewest added estimated parameters, then the fewest
-    shape parameters (:func:`complexity`), then the largest LR. Two laws that fit the data
-    equally well (e.g. a plain Coulomb friction and a Stribeck friction with a fitted
-    Stribeck speed, both two parameters, so BIC cannot tell them apart) are then told apart
-    by parsimony instead of by a likelihood difference within the noise; a richer law that is
-    significantly better on validation is still chosen.
-
-    Args:
-        passing: the passing trials (each with its refitted ``stage``).
-        val: the validation segments the stages were simulated on.
-        alpha: significance level of the tie test.
-
-    Raises:
-        ValueError: ``passing`` is empty, or a trial has no refitted stage (naming it).
-    """
-    if not passing:
-        raise ValueError("choose: no passing trial to choose from")
-    stages: dict[int, Stage] = {}
-    for d in passing:
-        if d.stage is None:
-            raise ValueError(f"choose: trial {d.score.label} has no refitted stage (its refit "
-                             f"failed: {d.reason})")
-        stages[id(d)] = d.stage
-    ref = max(passing, key=lambda d: d.lr)
-    cmp: dict[int, Comparison | None] = {
-        id(d): None if d is ref else validation_test(stages[id(d)], stages[id(ref)], val)
-        for d in passing}
-    tied_ids = {k for k, c in cmp.items() if c is None or not c.better(alpha)}
-    tied = [d for d in passing if id(d) in tied_ids]
-    chosen = min(tied, key=lambda d: (*complexity(d), -d.lr))
-    losers = [(d, _lost(d, chosen, ref, id(d) in tied_ids, cmp))
-              for d in passing if d is not chosen]
-    return Choice(chosen=chosen, largest_lr=ref, tied=tied,
-                  comparisons=[cmp[id(d)] for d in passing], losers=losers)
-
-
-def _simpler(c: Decision, d: Decision) -> str | None:
-    """How trial ``c`` is simpler than ``d`` (:func:`complexity`), or ``None`` if it is not."""
-    kc, sc = complexity(c)
-    kd, sd = complexity(d)
-    if kc < kd:
-        return f"{kc} estimated parameter{'s' * (kc != 1)} instead of {kd}"
-    if kc == kd and sc < sd:
-        d_shape = ", ".join(shape_parameters(d.score.effect))
-        if sc == 0:
-            return f"no shape parameter; this one fits {d_shape}"
-        return f"{sc} shape parameter{'s' * (sc != 1)} instead of {sd} ({d_shape})"
-    return None
-
-
-def _p(c: Comparison | None) -> float:
-    """A tie test's p-value (1 for the reference itself, ``None``)."""
-    return 1.0 if c is None else c.p_value
-
-
-def _dm(c: Comparison | None) -> str:
-    """A tie test's figures: the reference's validation error relative to the trial's and the
-    Diebold-Mariano p-value."""
-    if c is None:
-        return "Diebold-Mariano p = 1"
-    return (f"error {-100 * c.relative_gain:+.3g} % against it, Diebold-Mariano "
-            f"p = {c.p_value:.2g}")
-
-
-def _lost(d: Decision, c: Decision, ref: Decision, tied: bool,
-          cmp: dict[int, Comparison | None]) -> str:
-    """Why passing trial ``d`` lost to the chosen ``c`` (``ref``: the largest LR; ``tied``:
-    ``d`` is as good on validation as ``ref``; ``cmp``: the tie tests by ``id``, the
-    reference's validation error against each trial's)."""
-    lab, ref_lab = c.score.label, ref.score.label
-    p_c, p_d = _p(cmp[id(c)]), _p(cmp[id(d)])
-    simp = _simpler(c, d)
-    if c is ref:
-        why = f"{lab} has the larger LR ({c.lr:.4g} > {d.lr:.4g})"
-        if not tied:
-            return f"{why} and is significantly better on validation ({_dm(cmp[id(d)])})"
-        return f"{why} and is simpler ({simp})" if simp else why
-    if d is ref:
-        return (f"{lab} is as good on validation (Diebold-Mariano p = {p_c:.2g}) and simpler "
-                f"({simp}), at a smaller LR ({c.lr:.4g} < {d.lr:.4g})")
-    if not tied:
-        return (f"the largest-LR {ref_lab} is significantly better on validation "
-                f"({_dm(cmp[id(d)])}), and {lab} is as good as it (p = {p_c:.2g}) and simpler")
-    why = (f"{lab} is, like this one, as good on validation as the largest-LR {ref_lab} "
-           f"(Diebold-Mariano p = {p_c:.2g}; this one {p_d:.2g})")
-    return (f"{why} and simpler ({simp})" if simp
-            else f"{why} and has the larger LR ({c.lr:.4g} > {d.lr:.4g})")

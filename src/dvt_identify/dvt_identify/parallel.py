@@ -50,9 +50,8 @@ def workers() -> int:
     Raises:
         FitError: ``DVT_IDENTIFY_WORKERS`` is not an integer >= 1 (naming its value).
     """
-    if _in_worker or not hasattr(os, "fork") or threading.active_count() > 1:
-        return 1
     raw = os.environ.get(ENV, "").strip()
+    n = max(1, min(MAX_WORKERS, os.cpu_count() or 1))
     if raw:
         try:
             n = int(raw)
@@ -60,8 +59,9 @@ def workers() -> int:
             n = 0
         if n < 1:
             raise FitError(f"{ENV}: expected an integer >= 1, got {raw!r}")
-        return n
-    return max(1, min(MAX_WORKERS, os.cpu_count() or 1))
+    if _in_worker or not hasattr(os, "fork") or threading.active_count() > 1:
+        return 1
+    return n
 
 
 def _share(n_items: int, n_parts: int) -> list[list[int]]:

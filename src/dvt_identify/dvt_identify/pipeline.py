@@ -22,21 +22,15 @@ from typing import Any
 import numpy as np
 
 from dvt_identify import identifiability
-from dvt_identify.data import (
-    DataWarning,
-    Segment,
-    _constant,
-    check_excitation,
-    decimate,
-    load_bag_segments,
-    lowpass,
-)
+from dvt_identify.bagload import check_excitation, load_bag_segments
+from dvt_identify.data import DataWarning, Segment, _constant, decimate, lowpass
 from dvt_identify.description import Description, load_description
 from dvt_identify.errors import DataError, DvtIdentifyError
 from dvt_identify.fit import Progress, stderr_progress
-from dvt_identify.loop import CV_MIN_BAGS, IdentificationResult, LoopConfig, bag_of, identify
+from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.push import Push, model_node_parameters
 from dvt_identify.report import write_report
+from dvt_identify.stages import CV_MIN_BAGS, bag_of
 from dvt_model.progress import ProgressLine, fraction
 
 
@@ -255,6 +249,8 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
             say(result.agreement.statement)
         except DvtIdentifyError as exc:
             say(f"records not compared: {exc}")
+        if result.agreement is not None and result.agreement.disagree:
+            _offer_carrier(result, test, init_window, desc.structure.force_unit, say)
         say("test fit (no part in any choice): " + ", ".join(
             f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(
                 result.test.final.output_names, result.test.baseline.fit_percent,
@@ -266,6 +262,22 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         say(f"series written: {sp['npz']}")
     say(f"report written: {paths['json']} and {paths['md']} ({time.monotonic() - t0:.1f} s)")
     return result
+
+
+def _offer_carrier(result: IdentificationResult, test: Sequence[Segment], init_window: int,
+                   unit: str, say: Progress) -> None:
+    """Score the final model carrying the disagreement on ``test``, the carrier chosen on the
+    estimation records alone (:func:`dvt_identify.carrier.offer_carrier`); why not, as a note."""
+    from dvt_identify.carrier import offer_carrier
+
+    try:
+        result.carrier = offer_carrier(
+            result.final.fit, [*result.est_segments, *result.val_segments], test, init_window,
+            result.test.final, unit)
+        say(result.carrier.statement)
+    except DvtIdentifyError as exc:
+        result.notes.append(f"No model carrying the records' disagreement offered: {exc}")
+        say(result.notes[-1])
 
 
 def check_recording(est_bags: Sequence[str | Path], description: str | None = None

@@ -9,18 +9,19 @@ at the sample time ``dt_`` of the first estimation segment, and keeps the smalle
 selection fit is within :data:`SELECT_TOL` points of the best.
 
 Each order starts from a subspace fit (N4SID/PO-MOESP, the scheme of the ``nfoursid`` package
-computed here with numpy, :class:`_N4SID`) on the longest estimation segment at ``dt_``,
-decimated to at most :data:`N4SID_SAMPLES` samples and brought back to ``dt_`` by the ``q``-th
-root of its poles. When that step fails, or the refined
-fit is worse on the estimation data than the previous order's, the order starts from the
-previous order's optimum augmented by one small stable mode (rising order); ``orders_`` says
+computed here with numpy, :class:`dvt_identify.subspace._N4SID`) on the longest estimation
+segment at ``dt_``, decimated to at most :data:`~dvt_identify.subspace.N4SID_SAMPLES` samples
+and brought back to ``dt_`` by the ``q``-th root of its poles. When that step fails, or the
+refined fit is worse on the estimation data than the previous order's, the order starts from
+the previous order's optimum augmented by one small stable mode (rising order); ``orders_`` says
 which start was kept.
 
 The start is refined by output error: ``scipy.optimize.least_squares`` minimises the simulation
 error over all estimation segments (each with its own initial state as unknowns, outputs
 weighted by ``1/std(y_j)`` pooled over segments) with an analytic Jacobian from a
-numba-compiled sensitivity recursion, handed to MINPACK by its triangular factor
-(:class:`_Compressed`). The orders' subspace starts are refined on both cores. ``A``,
+numba-compiled sensitivity recursion (:mod:`dvt_identify.lti`), handed to MINPACK by its
+triangular factor (:class:`dvt_identify.oerefine._Compressed`). The orders' subspace starts are
+refined on both cores. ``A``,
 ``B``, ``C`` (and ``D``) are fully parametrised.
 Poles may leave the unit circle slightly (a drive under closed-loop control can need an
 integrator-like pole at 1.0001); a simulation that overflows gives a finite penalty.
@@ -55,258 +56,30 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
-from numpy.typing import NDArray
-from scipy.linalg import expm, expm_frechet, logm
 from scipy.optimize import least_squares
 
 from dvt_identify.data import Segment
 from dvt_identify.errors import DataError, FitError
+from dvt_identify.lti import Array, StateSpace, _sim
 from dvt_identify.metrics import figures
+from dvt_identify.oerefine import (
+    FTOL,
+    PENALTY,
+    SELECT_TOL,
+    STALL_ITERATIONS,
+    STALL_POINTS,
+    _Compressed,
+    _OEProblem,
+    _StalledError,
+    _whiten,
+)
 from dvt_identify.parallel import fork_map, workers
-from dvt_identify.streamls import Factored
+from dvt_identify.subspace import _N4SID
 
-Array = NDArray[np.float64]
-
-SELECT_TOL = 0.1
-"""Points of mean selection fit [%] within which the smallest order wins."""
-N4SID_SAMPLES = 1500
-"""Most samples handed to ``nfoursid`` (the record is decimated to fit)."""
-X_LIMIT = 1e60
-"""A simulated state beyond this magnitude counts as overflow (finite penalty)."""
-PENALTY = 1e10
-"""Weighted residual of every sample of a simulation that overflowed."""
 MODE_GAIN = 0.01
 """Output share (of ``std(y)``) of the small stable mode that raises the order."""
-FTOL = 1e-6
-"""Relative cost change that ends a refinement (a fit change of about ``1e-4`` points)."""
-STALL_POINTS = SELECT_TOL / 10
-"""Fit gain [points] below which a refinement has stalled (an order drifting to a pole at
-infinity or a pole-zero cancellation crawls for hundreds of iterations for nothing)..."""
-STALL_ITERATIONS = 10
-"""... over this many iterations."""
 X0_MIN_SAMPLES = 200
 """Fewest samples of the initial-state window (the rule of ``OEFit.estimate_x0``)."""
-
-
-# ---------------------------------------------------------------------------------------------
-# Compiled kernels
-
-
-@njit(cache=True, nogil=True)
-def _sim(A: Array, B: Array, C: Array, D: Array, u: Array, x0: Array, y: Array) -> bool:
-    """Simulate into ``y`` (N, ny); False when a state overflows (``y`` then incomplete)."""
-    n = A.shape[0]
-    nu = B.shape[1]
-    ny = C.shape[0]
-    x = x0.copy()
-    xn = np.empty(n)
-    for k in range(u.shape[0]):
-        for r in range(ny):
-            s = 0.0
-            for i in range(n):
-                s += C[r, i] * x[i]
-            for j in range(nu):
-                s += D[r, j] * u[k, j]
-            y[k, r] = s
-        for i in range(n):
-            s = 0.0
-            for j in range(n):
-                s += A[i, j] * x[j]
-            for j in range(nu):
-                s += B[i, j] * u[k, j]
-            if not abs(s) < X_LIMIT:
-                return False
-            xn[i] = s
-        x, xn = xn, x
-    return True
-
-
-@njit(cache=True, nogil=True)
-def _sim_jac(A: Array, B: Array, C: Array, D: Array, u: Array, x0: Array, feed: bool,
-             y: Array, J: Array) -> bool:
-    """Simulate into ``y`` (N, ny) and fill ``J`` (N*ny, p), zeroed by the caller, with
-    ``d y / d theta``, theta = (A, B, C, [D], x0) row-major; the sensitivities of the state to
-    A, B and x0 propagate through A. False when a state overflows."""
-    n = A.shape[0]
-    nu = B.shape[1]
-    ny = C.shape[0]
-    na = n * n
-    nab = na + n * nu
-    ns = nab + n
-    c_c = nab
-    c_d = c_c + ny * n
-    c_x = c_d + (ny * nu if feed else 0)
-    S = np.zeros((ns, n))  # S[c, i] = d x_i / d theta_c (A, B, x0 columns)
-    Sn = np.empty((ns, n))
-    for i in range(n):
-        S[nab + i, i] = 1.0
-    x = x0.copy()
-    xn = np.empty(n)
-    for k in range(u.shape[0]):
-        for r in range(ny):
-            row = k * ny + r
-            s = 0.0
-            for i in range(n):
-                s += C[r, i] * x[i]
-                J[row, c_c + r * n + i] = x[i]
-            for j in range(nu):
-                s += D[r, j] * u[k, j]
-                if feed:
-                    J[row, c_d + r * nu + j] = u[k, j]
-            y[k, r] = s
-            for c in range(nab):
-                s = 0.0
-                for i in range(n):
-                    s += C[r, i] * S[c, i]
-                J[row, c] = s
-            for c in range(n):
-                s = 0.0
-                for i in range(n):
-                    s += C[r, i] * S[nab + c, i]
-                J[row, c_x + c] = s
-        for c in range(ns):
-            for i in range(n):
-                s = 0.0
-                for m in range(n):
-                    s += A[i, m] * S[c, m]
-                Sn[c, i] = s
-        for i in range(n):
-            for j in range(n):
-                Sn[i * n + j, i] += x[j]
-            for j in range(nu):
-                Sn[na + i * nu + j, i] += u[k, j]
-            s = 0.0
-            for j in range(n):
-                s += A[i, j] * x[j]
-            for j in range(nu):
-                s += B[i, j] * u[k, j]
-            if not abs(s) < X_LIMIT:
-                return False
-            xn[i] = s
-        x, xn = xn, x
-        S, Sn = Sn, S
-    return True
-
-
-def warm_up() -> None:
-    """Load the two kernels (compiled on a process's first use, cached on disk)."""
-    z = np.zeros((1, 1))
-    y = np.zeros((2, 1))
-    _sim(z, z, z, z, np.zeros((2, 1)), np.zeros(1), y)
-    _sim_jac(z, z, z, z, np.zeros((2, 1)), np.zeros(1), False, y, np.zeros((2, 4)))
-
-
-# ---------------------------------------------------------------------------------------------
-# Models and rates
-
-
-@dataclass(frozen=True)
-class StateSpace:
-    """A discrete-time LTI model at sample time ``dt`` [s]: ``A`` (n, n), ``B`` (n, nu),
-    ``C`` (ny, n), ``D`` (ny, nu)."""
-
-    A: Array
-    B: Array
-    C: Array
-    D: Array
-    dt: float
-
-    @property
-    def nx(self) -> int:
-        """State dimension n."""
-        return int(self.A.shape[0])
-
-    def poles_s(self) -> NDArray[np.complex128]:
-        """Continuous-time poles ``log(z) / dt`` [1/s] (``-inf`` for a pole at 0)."""
-        z = np.linalg.eigvals(self.A).astype(complex)
-        with np.errstate(divide="ignore"):
-            return np.asarray(np.log(z) / self.dt)
-
-    def at(self, dt: float, name: str = "segment") -> tuple[Array, Array]:
-        """``(A, B)`` at sample time ``dt`` [s] through the continuous-time equivalent
-        (zero-order hold). Raises FitError naming ``name`` and both rates when the matrix
-        logarithm does not exist as a real matrix (a pole at 0 or on the negative axis)."""
-        if math.isclose(dt, self.dt, rel_tol=1e-9):
-            return self.A, self.B
-        L = _log_block(self.A, self.B)
-        if L is None:
-            raise FitError(f"{name}: cannot simulate at dt = {dt:g} s a linear model fitted "
-                           f"at dt = {self.dt:g} s: it has no continuous-time equivalent (a "
-                           f"pole at 0 or on the negative real axis)")
-        M = expm(L * (dt / self.dt))
-        n = self.nx
-        return np.ascontiguousarray(M[:n, :n]), np.ascontiguousarray(M[:n, n:])
-
-
-def _log_block(A: Array, B: Array) -> Array | None:
-    """Real ``logm([[A, B], [0, I]])`` or None when it does not exist."""
-    n, nu = B.shape
-    M = np.block([[A, B], [np.zeros((nu, n)), np.eye(nu)]])
-    try:
-        with np.errstate(all="ignore"):
-            L = logm(M)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    L = np.asarray(L)
-    if not np.all(np.isfinite(L)):
-        return None
-    if np.iscomplexobj(L):
-        if np.max(np.abs(L.imag)) > 1e-8 * max(1.0, float(np.max(np.abs(L.real)))):
-            return None
-        L = L.real
-    if np.max(np.abs(expm(L) - M)) > 1e-6 * max(1.0, float(np.max(np.abs(M)))):
-        return None
-    return np.asarray(L, dtype=float)
-
-
-def _expm_jacobian(X: Array) -> Array:
-    """``d vec(expm(X)) / d vec(X)`` (row-major vec), shape (m^2, m^2)."""
-    m = X.shape[0]
-    K = np.empty((m * m, m * m))
-    E = np.zeros((m, m))
-    for idx in range(m * m):
-        E.flat[idx] = 1.0
-        K[:, idx] = np.asarray(expm_frechet(X, E, compute_expm=False)).ravel()
-        E.flat[idx] = 0.0
-    return K
-
-
-def _rate_jacobian(A: Array, B: Array, ratio: float) -> Array | None:
-    """``d (A2, B2) / d (A, B)`` (row-major, A then B) of the conversion to ``ratio * dt``,
-    or None when the logarithm does not exist."""
-    n, nu = B.shape
-    m = n + nu
-    L = _log_block(A, B)
-    if L is None:
-        return None
-    try:
-        full = ratio * _expm_jacobian(ratio * L) @ np.linalg.inv(_expm_jacobian(L))
-    except np.linalg.LinAlgError:
-        return None
-    idx = np.array([i * m + j for i in range(n) for j in range(n)]
-                   + [i * m + n + j for i in range(n) for j in range(nu)])
-    return np.asarray(full[np.ix_(idx, idx)])
-
-
-def _root_rate(Aq: Array, Bq: Array, q: int) -> tuple[Array, Array]:
-    """A model at ``dt`` whose ``q``-step (input held) is ``(Aq, Bq)``: the principal ``q``-th
-    root of each pole (a negative real pole becomes the root of its magnitude)."""
-    if q == 1:
-        return Aq, Bq
-    lam, V = np.linalg.eig(Aq)
-    if np.linalg.cond(V) > 1e8:
-        raise np.linalg.LinAlgError("N4SID poles are not diagonalisable")
-    neg = (np.abs(lam.imag) <= 1e-12 * np.abs(lam)) & (lam.real < 0)
-    mu = np.where(neg, np.abs(lam) ** (1.0 / q), lam.astype(complex) ** (1.0 / q))
-    muq = mu ** q
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = np.where(np.abs(mu - 1.0) < 1e-12, float(q), (1.0 - muq) / (1.0 - mu))
-    Vi = np.linalg.inv(V)
-    A = (V * mu) @ Vi
-    G = (V * g) @ Vi
-    B = np.linalg.solve(G, Bq.astype(complex))
-    return np.ascontiguousarray(A.real), np.ascontiguousarray(B.real)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -679,32 +452,6 @@ class LinearReference:
         return StateSpace(np.ascontiguousarray(A), m.B, m.C, m.D, m.dt)
 
 
-def _whiten(m: StateSpace, est: Sequence[Segment], x0s: list[Array]
-            ) -> tuple[StateSpace, list[Array]]:
-    """The similar model whose simulated states have unit covariance over ``est``."""
-    n = m.nx
-    xs = []
-    for s, x0 in zip(est, x0s, strict=True):
-        A, B = m.at(s.dt, s.name)
-        ext = StateSpace(A, B, np.eye(n), np.zeros((n, B.shape[1])), s.dt)
-        y = np.empty((s.n, n))
-        if not _sim(ext.A, ext.B, ext.C, ext.D, np.ascontiguousarray(s.u), x0, y):
-            return m, x0s
-        xs.append(y)
-    X = np.vstack(xs)
-    cov = (X.T @ X) / X.shape[0]
-    if not np.all(np.isfinite(cov)):
-        return m, x0s
-    cov += 1e-12 * max(float(np.trace(cov)), 1e-300) * np.eye(n)
-    try:
-        T = np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        return m, x0s
-    Ti = np.linalg.inv(T)
-    return (StateSpace(Ti @ m.A @ T, Ti @ m.B, m.C @ T, m.D, m.dt),
-            [Ti @ x for x in x0s])
-
-
 _FAILURES = (np.linalg.LinAlgError, ValueError, FitError)
 _Refined = tuple[float, "StateSpace", list[Array], int, str]
 """A refinement: cost, model, initial states, evaluations, how it was started."""
@@ -713,255 +460,6 @@ _Scores = tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
 """What a failed start or refinement of one order raises."""
 
 
-class _StalledError(Exception):
-    """The refinement stopped paying (see :meth:`_OEProblem.jacobian`)."""
-
-
-class _OEProblem:
-    """Weighted output-error residual ``(yhat - y) / w`` over segments and its Jacobian."""
-
-    def __init__(self, segs: Sequence[Segment], w: Array, n: int, nu: int, ny: int,
-                 feed: bool, dt: float, window: int = 0) -> None:
-        self.segs = list(segs)
-        self.w = w
-        self.n, self.nu, self.ny, self.feed, self.dt = n, nu, ny, feed, dt
-        self.window = int(window)
-        self.nab = n * n + n * nu
-        self.p_dyn = self.nab + ny * n + (ny * nu if feed else 0)
-        # with a window, every initial state is the one the window gives (no unknowns)
-        self.p = self.p_dyn + (0 if self.window > 0 else n * len(self.segs))
-        self.rows = np.cumsum([0] + [s.n * ny for s in self.segs])
-        self.u = [np.ascontiguousarray(s.u) for s in self.segs]
-        self.sst = sum(float(np.sum(((s.y - s.y.mean(axis=0)) / w) ** 2)) for s in self.segs)
-        self.nfev = 0
-        self.best: tuple[float, Array] | None = None
-        self.history: list[float] = []
-
-    def fit_points(self, cost: float) -> float:
-        """Pooled weighted fit [%] of a cost ``0.5 ||r||^2``."""
-        return 100.0 * (1.0 - math.sqrt(2.0 * cost / self.sst)) if self.sst > 0 else 0.0
-
-    def pack(self, m: StateSpace, x0s: Sequence[Array]) -> Array:
-        parts = [m.A.ravel(), m.B.ravel(), m.C.ravel()]
-        if self.feed:
-            parts.append(m.D.ravel())
-        if self.window > 0:
-            return np.concatenate(parts)
-        return np.concatenate(parts + [np.asarray(x, float) for x in x0s])
-
-    def window_x0(self, m: StateSpace, k: int, A: Array, B: Array) -> Array:
-        """The initial state of segment ``k`` that best reproduces its first ``window``
-        samples (weighted least squares; the model is linear in it)."""
-        s = self.segs[k]
-        n, ny = self.n, self.ny
-        nw = min(s.n, self.window)
-        u = np.ascontiguousarray(self.u[k][:nw])
-        forced = np.empty((nw, ny))
-        if not _sim(A, B, m.C, m.D, u, np.zeros(n), forced):
-            return np.zeros(n)
-        O = np.empty((nw, ny, n))
-        z = np.zeros_like(u)
-        for i in range(n):
-            yi = np.empty((nw, ny))
-            if not _sim(A, B, m.C, m.D, z, np.eye(n)[i], yi):
-                return np.zeros(n)
-            O[:, :, i] = yi
-        Ow = (O / self.w[None, :, None]).reshape(nw * ny, n)
-        r = ((s.y[:nw] - forced) / self.w).ravel()
-        return np.asarray(np.linalg.lstsq(Ow, r, rcond=1e-10)[0], dtype=float)
-
-    def unpack(self, th: Array) -> tuple[StateSpace, list[Array]]:
-        n, nu, ny = self.n, self.nu, self.ny
-        i = 0
-        A = th[i:i + n * n].reshape(n, n)
-        i += n * n
-        B = th[i:i + n * nu].reshape(n, nu)
-        i += n * nu
-        C = th[i:i + ny * n].reshape(ny, n)
-        i += ny * n
-        D = th[i:i + ny * nu].reshape(ny, nu) if self.feed else np.zeros((ny, nu))
-        m = StateSpace(A.copy(), B.copy(), C.copy(), D.copy(), self.dt)
-        if self.window > 0:
-            x0s = []
-            for k, sg in enumerate(self.segs):
-                try:
-                    Ak, Bk = m.at(sg.dt, sg.name)
-                except FitError:
-                    x0s.append(np.zeros(n))
-                    continue
-                x0s.append(self.window_x0(m, k, Ak, Bk))
-            return m, x0s
-        x0s = [th[self.p_dyn + k * n: self.p_dyn + (k + 1) * n].copy()
-               for k in range(len(self.segs))]
-        return m, x0s
-
-    def residual(self, th: Array) -> Array:
-        self.nfev += 1
-        m, x0s = self.unpack(th)
-        r = np.empty(int(self.rows[-1]))
-        for k, s in enumerate(self.segs):
-            try:
-                A, B = m.at(s.dt, s.name)
-            except FitError:
-                return np.full(r.size, PENALTY)
-            y = np.empty((s.n, self.ny))
-            if not _sim(A, B, m.C, m.D, self.u[k], x0s[k], y):
-                return np.full(r.size, PENALTY)
-            r[self.rows[k]:self.rows[k + 1]] = ((y - s.y) / self.w).ravel()
-        cost = 0.5 * float(np.sum(r * r))
-        if self.best is None or cost < self.best[0]:
-            self.best = (cost, th.copy())
-        return r
-
-    def jacobian(self, th: Array) -> Array:
-        """The Jacobian (called once per iteration); raises :class:`_StalledError` when the best
-        fit gained less than :data:`STALL_POINTS` over the last :data:`STALL_ITERATIONS`."""
-        self.stall_check()
-        return self.jacobian_at(th)
-
-    def stall_check(self) -> None:
-        """Note the best cost of this iteration; raise :class:`_StalledError` when it gained
-        less than :data:`STALL_POINTS` over the last :data:`STALL_ITERATIONS`."""
-        if self.best is not None:
-            self.history.append(self.best[0])
-            h = self.history
-            if (len(h) > STALL_ITERATIONS and self.fit_points(h[-1])
-                    - self.fit_points(h[-1 - STALL_ITERATIONS]) < STALL_POINTS):
-                raise _StalledError
-
-    def jacobian_at(self, th: Array) -> Array:
-        """The Jacobian (N ny, p) of :meth:`residual` at ``th``."""
-        m, x0s = self.unpack(th)
-        n, ny = self.n, self.ny
-        J = np.zeros((int(self.rows[-1]), self.p))
-        for k, s in enumerate(self.segs):
-            ratio = s.dt / self.dt
-            T = None
-            try:
-                A, B = m.at(s.dt, s.name)
-            except FitError:
-                return J
-            if not math.isclose(ratio, 1.0, rel_tol=1e-9):
-                T = _rate_jacobian(m.A, m.B, ratio)
-                if T is None:
-                    return J
-            Jk = np.zeros((s.n * ny, self.p_dyn + n))
-            y = np.empty((s.n, ny))
-            if not _sim_jac(A, B, m.C, m.D, self.u[k], x0s[k], self.feed, y, Jk):
-                return np.zeros_like(J)
-            if T is not None:
-                Jk[:, :self.nab] = Jk[:, :self.nab] @ T
-            Jk = (Jk.reshape(s.n, ny, -1) / self.w[None, :, None]).reshape(s.n * ny, -1)
-            r0, r1 = self.rows[k], self.rows[k + 1]
-            if self.window > 0:
-                # x0 = argmin over the window: dx0/dtheta = -O^+ dyhat_window/dtheta (O the
-                # window's initial-state sensitivity; Gauss-Newton: exact at a zero window
-                # residual)
-                nw = min(s.n, self.window) * ny
-                O = Jk[:nw, self.p_dyn:]
-                dx0 = -np.linalg.lstsq(O, Jk[:nw, :self.p_dyn], rcond=1e-10)[0]
-                J[r0:r1, :] = Jk[:, :self.p_dyn] + Jk[:, self.p_dyn:] @ dx0
-                continue
-            J[r0:r1, :self.p_dyn] = Jk[:, :self.p_dyn]
-            J[r0:r1, self.p_dyn + k * n: self.p_dyn + (k + 1) * n] = Jk[:, self.p_dyn:]
-        return J
-
-
-class _Compressed(Factored):
-    """The refinement's problem handed to MINPACK by its triangular factor
-    (:class:`~dvt_identify.streamls.Factored`, one block): Levenberg-Marquardt sees what it
-    would see from the full problem (``J^T J``, ``J^T r``, ``|r|`` and the column norms of
-    ``J``), while its own pivoted QR, the cost of an iteration on ``N ny`` rows, runs on
-    ``p + 1``; the Jacobian is formed at every residual evaluation instead of at every
-    accepted one. The Jacobian request also notes the iteration (the stall rule)."""
-
-    def __init__(self, prob: _OEProblem) -> None:
-        cols = np.arange(prob.p, dtype=np.int64)
-        super().__init__(lambda th: [(prob.jacobian_at(th), prob.residual(th), cols)], prob.p)
-        self.prob = prob
-
-    def jacobian(self, z: Array) -> Array:
-        self.prob.stall_check()
-        return super().jacobian(z)
-
-
-class _N4SID:
-    """Subspace starts on the longest estimation segment at ``dt``, decimated to at most
-    :data:`N4SID_SAMPLES` samples (block means of the input).
-
-    The PO-MOESP scheme of the ``nfoursid`` package (Verhaegen and Verdult, *Filtering and
-    system identification*, 2007, pp. 329 and 333; past inputs and outputs as instruments),
-    computed here with numpy: the same block Hankel matrices, LQ factor, observability
-    estimate and least-squares system matrices, with the observability matrix's singular value
-    decomposition taken once (economy size) for every order instead of a full one per order,
-    and without the package's import of pandas and matplotlib (a second of a process's first
-    identification)."""
-
-    def __init__(self, est: Sequence[Segment], dt: float, max_order: int, ny: int) -> None:
-        self.dt = dt
-        self.error = ""
-        self.vh: Array | None = None
-        seg = max((s for s in est if math.isclose(s.dt, dt, rel_tol=1e-9)), key=lambda s: s.n)
-        self.q = max(1, math.ceil(seg.n / N4SID_SAMPLES))
-        self.label = "n4sid" + (f" (decimated by {self.q})" if self.q > 1 else "")
-        rows = max(10, math.ceil(2 * max_order / ny))
-        m = seg.n // self.q
-        if m < 4 * rows:
-            self.error = f"{seg.name}: {m} samples are too few for {rows} block rows"
-            return
-        self.u = seg.u[: m * self.q].reshape(m, self.q, -1).mean(axis=1)
-        self.y = np.ascontiguousarray(seg.y[: m * self.q: self.q])
-        self.rows = rows
-        try:
-            self.s, self.vh = _po_moesp(self.u, self.y, rows)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            self.error = f"{type(exc).__name__}: {exc}"
-
-    def start(self, n: int, feedthrough: bool) -> StateSpace:
-        """The order-``n`` subspace model at ``dt`` (ValueError / LinAlgError on failure)."""
-        if self.vh is None:
-            raise ValueError(self.error)
-        r = self.rows
-        # the state sequence from the observability estimate's leading n directions
-        x = (np.sqrt(self.s[:n])[:, None] * self.vh[:n])[:, :-1]
-        last_y, last_u = self.y[r:].T, self.u[r:].T
-        x_and_y = np.concatenate([x[:, 1:], last_y[:, :-1]])
-        x_and_u = np.concatenate([x[:, :-1], last_u[:, :-1]])
-        abcd = (np.linalg.pinv(x_and_u @ x_and_u.T) @ x_and_u @ x_and_y.T).T
-        Aq, Bq = abcd[:n, :n], abcd[:n, n:]
-        C, D = abcd[n:, :n], abcd[n:, n:]
-        if not all(np.all(np.isfinite(M)) for M in (Aq, Bq, C, D)):
-            raise ValueError(f"order {n}: non-finite subspace matrices")
-        A, B = _root_rate(np.asarray(Aq, float), np.asarray(Bq, float), self.q)
-        return StateSpace(A, B, np.asarray(C, float),
-                          np.asarray(D, float) if feedthrough else np.zeros_like(D), self.dt)
-
-
-def _block_hankel(a: Array, rows: int) -> Array:
-    """Block Hankel matrix of ``a`` (N, k) with ``rows`` block rows: column ``j`` holds
-    ``a[j], ..., a[j + rows - 1]`` stacked, shape (rows k, N - rows + 1)."""
-    n, k = a.shape
-    win = np.lib.stride_tricks.sliding_window_view(a, rows, axis=0)  # (N-rows+1, k, rows)
-    return np.ascontiguousarray(np.transpose(win, (2, 1, 0)).reshape(rows * k, n - rows + 1))
-
-
-def _po_moesp(u: Array, y: Array, rows: int) -> tuple[Array, Array]:
-    """Singular values and right singular vectors of the PO-MOESP observability estimate
-    ``R32 R22^+ [U; Y]`` (``rows`` block rows; ``u`` (N, nu), ``y`` (N, ny))."""
-    uh = _block_hankel(u, rows)
-    yh = _block_hankel(y, rows)
-    z = np.concatenate([uh[:, rows:], uh[:, :-rows], yh[:, :-rows], yh[:, rows:]])
-    _, r = np.linalg.qr(z.T, mode="reduced")
-    low = r.T
-    yr, ur = y.shape[1] * rows, u.shape[1] * rows
-    r32 = low[-yr:, ur:-yr]
-    r22 = low[ur:-yr, ur:-yr]
-    obs = r32 @ np.linalg.pinv(r22) @ np.concatenate([uh, yh])
-    _, s, vh = np.linalg.svd(obs, full_matrices=False)
-    return s, vh
-
-
-# ---------------------------------------------------------------------------------------------
 # Checks
 
 

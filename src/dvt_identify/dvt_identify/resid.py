@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from scipy import signal, stats
 
 from dvt_identify.data import Segment
+from dvt_identify.discrete import simulate_linear, zoh
 from dvt_identify.uncertainty import NoiseFloor, noise_floor
 
 Array = NDArray[np.float64]
@@ -241,8 +242,6 @@ def input_noise_response(A: Array, B: Array, dt: float, input_std: Sequence[floa
     """Variance of each output (state) of ``x' = A x + B u`` driven by white input noise of std
     ``input_std`` per input held over each sample (what an output-error simulation fed with
     measured, noisy inputs carries in its error), shape (nx,)."""
-    from dvt_identify.simulation import simulate_linear, zoh
-
     nx, nu = B.shape
     if nx == 0 or nu == 0 or not np.any(np.asarray(input_std) > 0):
         return np.zeros(nx)

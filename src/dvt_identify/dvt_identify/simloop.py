@@ -10,9 +10,12 @@ in the interpreter, ``reference=True``, to check the compilation).
 
 Smooth laws are coded as ``(kind, p0, p1, p2)`` (:data:`STRIBECK`, :data:`WINDAGE`,
 :data:`ABS_VISCOUS`, :data:`COULOMB`); :func:`smooth_value` evaluates one, compiled or from
-Python. The laws themselves are :mod:`dvt_model.friction`'s (the one friction law of the
-suite), compiled here with ``numba.njit`` unchanged; a member force is minus the resisting force
-of the law, and a sliding dry member feels ``-coulomb(s, C, 0, 0)`` (the exact sign).
+Python. The laws themselves, their codes and their exact partials are :mod:`dvt_model.laws`'
+(the one law table of the suite), compiled here with ``numba.njit`` unchanged
+(:func:`dvt_model.laws.coded_value`, :func:`dvt_model.laws.coded_partials` dispatch on the
+code); a member force is minus the resisting force of the law, and a sliding dry member feels
+``-coulomb(s, C, 0, 0)`` (the exact sign). What is not the law stays here: the stick rule, the
+break-away, the implicit hold of a smoothed sign.
 
 A dry law with a smoothed sign (``tanh(s / eps)``, ``eps > 0``: :data:`COULOMB`, and
 :data:`STRIBECK` with ``p2 = eps > 0``) is *stiff*: near ``s = 0`` it acts like a damper
@@ -36,81 +39,106 @@ number of directions, the exact derivative of each step along the branch it take
 :mod:`dvt_identify.sensitivity` feeds; :func:`loop_members` is it without directions.
 
 Compilation happens on the first call of a process and is cached on disk next to this file
-(``__pycache__``), so later processes load machine code in well under a second.
+(``__pycache__``), so later processes load machine code in well under a second. numba keys that
+cache on this file only, while the kernels compile in the laws of :mod:`dvt_model.laws` and the
+spline of :mod:`dvt_model.backlash`: :func:`_drop_stale_cache` removes the cached kernels at
+import when those sources changed (a digest kept beside the cache).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+from pathlib import Path
+
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 from numpy.typing import NDArray
 
-from dvt_model import backlash, friction
+from dvt_model import backlash, laws
 
 Array = NDArray[np.float64]
 
-STRIBECK = 0
+STRIBECK = laws.STRIBECK
 """``g(s) = -stribeck(s, p0, p1, eps=p2)`` = ``-p0 exp(-(s/p1)^2) sign_eps(s)`` (``p0 = Fs``,
 ``p1 = vs > 0``, ``p2 = eps >= 0``: 0 the exact sign, held with the stick rule's break-away)."""
-WINDAGE = 1
+WINDAGE = laws.WINDAGE
 """``g(s) = -windage(s, p0)`` = ``-p0 s |s|`` (``p0 = Cw``)."""
-ABS_VISCOUS = 2
+ABS_VISCOUS = laws.ABS_VISCOUS
 """``g(s) = -abs_viscous(s, p0)`` = ``-p0 |s|`` (``p0 = dFv``)."""
-COULOMB = 3
+COULOMB = laws.COULOMB
 """``g(s) = -coulomb(s, p0, 0, eps=p1)`` = ``-p0 tanh(s/p1)`` (``p0 = Fc``, ``p1 = eps > 0``):
 dry friction with a smoothed sign, no stick rule."""
-KINDS = (STRIBECK, WINDAGE, ABS_VISCOUS, COULOMB)
+KINDS = tuple(law.code for law in laws.LAWS.values())
+"""Every law code of :data:`dvt_model.laws.LAWS` (the kernels dispatch on it)."""
 
-_stribeck = njit(cache=True, nogil=True)(friction.stribeck)
-_windage = njit(cache=True, nogil=True)(friction.windage)
-_abs_viscous = njit(cache=True, nogil=True)(friction.abs_viscous)
-_coulomb = njit(cache=True, nogil=True)(friction.coulomb)
+
+
+def _drop_stale_cache() -> None:
+    """Delete this module's cached kernels in ``__pycache__`` when the sources compiled into
+    them (:mod:`dvt_model.laws`, :mod:`dvt_model.backlash`) differ from those of the cache
+    (their SHA-256 in ``__pycache__/simloop.deps``). A cache elsewhere (``NUMBA_CACHE_DIR``)
+    is not handled: delete it after editing a law."""
+    cache = Path(__file__).with_name("__pycache__")
+    digest = hashlib.sha256(b"".join(Path(m.__file__).read_bytes()
+                                     for m in (laws, backlash) if m.__file__)).hexdigest()
+    stamp = cache / "simloop.deps"
+    try:
+        if stamp.read_text() == digest:
+            return
+    except OSError:
+        pass
+    try:
+        cache.mkdir(exist_ok=True)
+        for f in [*cache.glob("simloop.*.nbi"), *cache.glob("simloop.*.nbc")]:
+            f.unlink(missing_ok=True)
+        tmp = cache / f"simloop.deps.{os.getpid()}"
+        tmp.write_text(digest)
+        tmp.replace(stamp)
+    except OSError:  # a read-only install: numba then caches elsewhere or not at all
+        pass
+
+
+_drop_stale_cache()
+for _fn in laws.JITABLE:  # the laws compile as written in dvt_model.laws (module docstring)
+    register_jitable(_fn)
+_coded_value = njit(cache=True, nogil=True)(laws.coded_value)
+_coded_partials = njit(cache=True, nogil=True)(laws.coded_partials)
+_coded_eps = njit(cache=True, nogil=True)(laws.coded_eps)
+_coulomb = njit(cache=True, nogil=True)(laws.coulomb)
 _spline_substep = njit(cache=True, nogil=True)(backlash.spline_substep)
 
 
 @njit(cache=True, nogil=True)
 def smooth_value(kind: int, p0: float, p1: float, p2: float, s: float) -> float:
-    """Member force of a coded smooth law at member speed ``s`` [force unit]."""
-    if kind == 0:
-        if s == 0.0:
-            return 0.0
-        return -_stribeck(s, p0, p1, p2, 2.0)
-    if kind == 1:
-        return -_windage(s, p0)
-    if kind == 3:
-        return -_coulomb(s, p0, 0.0, p1)
-    return -_abs_viscous(s, p0)
+    """Member force of a coded smooth law at member speed ``s`` [force unit]: minus the law's
+    resisting force (:func:`dvt_model.laws.coded_value`)."""
+    if kind == STRIBECK and s == 0.0:
+        return 0.0
+    return -_coded_value(kind, p0, p1, p2, s)
 
 
 @njit(cache=True, nogil=True)
 def smooth_slope(kind: int, p0: float, p1: float, p2: float, s: float) -> float:
     """``d g / d s`` of a stiff law (a smoothed sign: :data:`COULOMB`, :data:`STRIBECK` with
     ``p2 > 0``) at member speed ``s``; 0 for the laws held explicitly."""
-    if kind == 3 and p1 > 0.0:
-        t = np.tanh(s / p1)
-        return -p0 * (1.0 - t * t) / p1
-    if kind == 0 and p2 > 0.0:
-        e = np.exp(-(s / p1) ** 2)
-        t = np.tanh(s / p2)
-        return -p0 * e * ((1.0 - t * t) / p2 - 2.0 * s / (p1 * p1) * t)
+    if _coded_eps(kind, p1, p2) > 0.0:
+        return -_coded_partials(kind, p0, p1, p2, s)[1]
     return 0.0
 
 
 @njit(cache=True, nogil=True)
 def stiff(kind: int, p2: float, p1: float) -> bool:
     """Whether a coded law has a smoothed sign (held implicitly, module docstring)."""
-    return (kind == 3 and p1 > 0.0) or (kind == 0 and p2 > 0.0)
+    return _coded_eps(kind, p1, p2) > 0.0
 
 
 @njit(cache=True, nogil=True)
 def _value_slope(kind: int, p0: float, p1: float, p2: float, s: float) -> tuple[float, float]:
     """A stiff law's force and its slope at ``s`` (one evaluation of the transcendentals)."""
-    if kind == 3:
-        t = np.tanh(s / p1)
-        return -p0 * t, -p0 * (1.0 - t * t) / p1
-    e = np.exp(-(s / p1) ** 2)
-    t = np.tanh(s / p2)
-    return -p0 * e * t, -p0 * e * ((1.0 - t * t) / p2 - 2.0 * s / (p1 * p1) * t)
+    f, fs, _, _, _ = _coded_partials(kind, p0, p1, p2, s)
+    return -f, -fs
 
 
 @njit(cache=True, nogil=True)
@@ -173,33 +201,10 @@ def smooth_partials(kind: int, p0: float, p1: float, p2: float, s: float
                     ) -> tuple[float, float, float, float]:
     """Partial derivatives ``(dg/ds, dg/dp0, dg/dp1, dg/dp2)`` of a coded smooth law's member
     force ``g`` (:func:`smooth_value`; the stiff laws at their end-of-step speed) at member
-    speed ``s``: the exact derivatives of :mod:`dvt_model.friction`'s laws (0 at ``s = 0`` for
-    an exact sign, where the law is 0 for every parameter)."""
-    if kind == 1:  # -p0 s |s|
-        return -2.0 * p0 * abs(s), -s * abs(s), 0.0, 0.0
-    if kind == 2:  # -p0 |s|
-        sg = 1.0 if s > 0.0 else (-1.0 if s < 0.0 else 0.0)
-        return -p0 * sg, -abs(s), 0.0, 0.0
-    if kind == 3:  # -p0 tanh(s / p1), or -p0 sign(s)
-        if p1 > 0.0:
-            t = np.tanh(s / p1)
-            q = 1.0 - t * t
-            return -p0 * q / p1, -t, p0 * q * s / (p1 * p1), 0.0
-        sg = 1.0 if s > 0.0 else (-1.0 if s < 0.0 else 0.0)
-        return 0.0, -sg, 0.0, 0.0
-    # kind 0: -p0 exp(-(s/p1)^2) sign_eps(s)
-    if p2 > 0.0:
-        e = np.exp(-(s / p1) ** 2)
-        t = np.tanh(s / p2)
-        q = 1.0 - t * t
-        return (-p0 * e * (q / p2 - 2.0 * s / (p1 * p1) * t), -e * t,
-                -p0 * t * e * 2.0 * s * s / (p1 * p1 * p1), p0 * e * q * s / (p2 * p2))
-    if s == 0.0:
-        return 0.0, 0.0, 0.0, 0.0
-    sg = 1.0 if s > 0.0 else -1.0
-    e = np.exp(-(s / p1) ** 2)
-    return (2.0 * p0 * abs(s) * e / (p1 * p1), -e * sg,
-            -p0 * sg * e * 2.0 * s * s / (p1 * p1 * p1), 0.0)
+    speed ``s``: minus the exact derivatives of :func:`dvt_model.laws.coded_partials` (0 at
+    ``s = 0`` for an exact sign, where the law is 0 for every parameter)."""
+    _, fs, f0, f1, f2 = _coded_partials(kind, p0, p1, p2, s)
+    return -fs, -f0, -f1, -f2
 
 
 @njit(cache=True, nogil=True)
@@ -621,7 +626,7 @@ def warm_up() -> None:
     problem: the step loops (with and without sensitivities), the spline and lag kernels and
     the linear reference's simulation kernels; what a process pays once before its first
     identification."""
-    from dvt_identify.reference import warm_up as reference_warm_up
+    from dvt_identify.lti import warm_up as reference_warm_up
 
     reference_warm_up()
     z2 = np.zeros((2, 2))

@@ -18,41 +18,16 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
 from scipy.linalg import expm
 
 from dvt_identify.data import Segment
-from dvt_identify.effects import Effect, ParamSpec, SegmentView
+from dvt_identify.discrete import simulate_linear, zoh
+from dvt_identify.effects.base import Effect, ParamSpec, SegmentView
 from dvt_identify.errors import DataError, DescriptionError, FitError
 from dvt_identify.simloop import loop_members, loop_scalar, smooth_value
 from dvt_identify.structures import ModelStructure, output_matrix, output_names
 
 Array = NDArray[np.float64]
-
-
-_ZOH_CACHE: dict[tuple[bytes, float], tuple[Array, Array]] = {}
-
-
-def zoh(A: Array, dt: float) -> tuple[Array, Array]:
-    """Exact ZOH: ``Ad = e^{A dt}``, ``Gd = int_0^dt e^{A s} ds`` (both (nx, nx)); cached."""
-    key = (np.ascontiguousarray(A, dtype=float).tobytes(), float(dt))
-    hit = _ZOH_CACHE.get(key)
-    if hit is not None:
-        return hit
-    out = _zoh(A, dt)
-    if len(_ZOH_CACHE) > 256:
-        _ZOH_CACHE.clear()
-    _ZOH_CACHE[key] = out
-    return out
-
-
-def _zoh(A: Array, dt: float) -> tuple[Array, Array]:
-    nx = A.shape[0]
-    M = np.zeros((2 * nx, 2 * nx))
-    M[:nx, :nx] = A * dt
-    M[:nx, nx:] = np.eye(nx) * dt
-    E = expm(M)
-    return np.asarray(E[:nx, :nx]), np.asarray(E[:nx, nx:])
 
 
 def zoh_derivatives(A: Array, dA: Array, dt: float) -> tuple[Array, Array]:
@@ -120,35 +95,6 @@ def _zoh_derivatives_eig(A: Array, dA: Array, dt: float) -> tuple[Array, Array] 
             return None
         dAd, dGd = dAd.real, dGd.real
     return np.ascontiguousarray(dAd, dtype=float), np.ascontiguousarray(dGd, dtype=float)
-
-
-def simulate_linear(Ad: Array, d: Array, x0: Array) -> Array:
-    """``x[k+1] = Ad x[k] + d[k]``, ``x[0] = x0``; returns x, shape (N, nx).
-
-    Vectorised in modal coordinates with ``lfilter`` (one first-order recursion per eigenvalue);
-    a plain loop when ``Ad`` is close to defective.
-    """
-    n, nx = d.shape
-    lam, V = np.linalg.eig(Ad)
-    if np.linalg.cond(V) > 1e8:
-        x = np.empty((n, nx))
-        x[0] = x0
-        for k in range(n - 1):
-            x[k + 1] = Ad @ x[k] + d[k]
-        return x
-    real = bool(np.all(np.abs(lam.imag) < 1e-300)) and bool(np.all(np.abs(V.imag) < 1e-300))
-    if real:
-        lam, V = lam.real, V.real
-    Vi = np.linalg.inv(V)
-    q = d @ Vi.T
-    z0 = Vi @ x0
-    kk = np.arange(n)
-    z = np.empty((n, nx), dtype=q.dtype)
-    with np.errstate(over="ignore", invalid="ignore"):
-        for i in range(nx):
-            z[:, i] = signal.lfilter([0.0, 1.0], [1.0, -lam[i]], q[:, i]) + lam[i] ** kk * z0[i]
-        x = (z @ V.T).real
-    return np.asarray(x, dtype=float)
 
 
 def zoh_decimate(seg: Segment, q: int) -> Segment:

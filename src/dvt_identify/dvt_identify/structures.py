@@ -24,7 +24,7 @@ from scipy import signal
 from scipy.optimize import least_squares
 
 from dvt_identify.data import Segment
-from dvt_identify.effects import ParamSpec
+from dvt_identify.effects.base import ParamSpec
 from dvt_identify.errors import DescriptionError
 
 Array = NDArray[np.float64]

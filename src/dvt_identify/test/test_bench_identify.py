@@ -142,13 +142,22 @@ def test_coloured_noise_has_the_asked_std_and_correlation() -> None:
 
 
 def test_pretty_output_of_the_comparison() -> None:
+    peer = {"told": ["coulomb_friction"], "validation_fit_percent_free_run": {"a": 98.8, "b": 98.6},
+            "M_error_percent": 0.7, "D_error_percent": 1.1, "fit_seconds": 40.0,
+            "build_seconds": 20.0, "cpu_seconds": 21.0, "status": "Solve_Succeeded",
+            "iterations": 30, "nodes": 3300}
     row = {"estimation": "bags/ident-coulomb", "validation": "bags/ident-coulomb-val",
            "validation_fit_percent": {"a": 98.9, "b": 98.7},
            "validation_fit_percent_free_run": {"a": 98.9, "b": 98.7},
            "accepted": ["coulomb_friction@carrier3"], "M_error_percent": 0.5,
            "D_error_percent": 1.4, "seconds": 9.0, "cpu_seconds": 8.5, "baseline_fit_seconds": 1.0,
-           "baseline_suspect": [], "reference": bi.REFERENCE["ident-coulomb"],
-           "meets_targets": {"twice_as_fast": True}}
-    text = bi.pretty({"mode": "compare", "runs": [row], "reference_method": "ms",
+           "baseline_suspect": [], "peer": peer, "meets_targets": {"twice_as_fast": True}}
+    text = bi.pretty({"mode": "compare", "runs": [row], "peer_method": "ms",
                       "load_average": {"before": [], "after": []}})
-    assert "98.87 / 98.69" in text and "M error 0.50 %" in text and "twice_as_fast yes" in text
+    assert "98.80 / 98.60" in text and "M error 0.50 %" in text and "twice_as_fast yes" in text
+    assert "M error 0.70 %" in text and "Solve_Succeeded" in text
+    row["peer"] = {"not_run": "peer not run: casadi not installed"}
+    del row["meets_targets"]
+    text = bi.pretty({"mode": "compare", "runs": [row], "peer_method": "ms",
+                      "load_average": {"before": [], "after": []}})
+    assert "peer not run: casadi not installed" in text and "98.80" not in text

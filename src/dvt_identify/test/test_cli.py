@@ -209,8 +209,8 @@ def test_header_names_the_description_once(bags: tuple[Path, Path, Path],
 
 
 def test_negative_likelihood_ratio_reads_no_improvement() -> None:
-    from dvt_identify.loop import lr_text
     from dvt_identify.report import _lr_cell
+    from dvt_identify.selection import lr_text
 
     assert lr_text(-2.8, 3.84) == "no improvement (LR 0 <= chi2 threshold 3.84)"
     assert lr_text(1.5, 3.84) == "LR 1.5 <= chi2 threshold 3.84"

@@ -8,14 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dvt_identify.bagload import check_excitation, load_segment
 from dvt_identify.data import (
     Checks,
     DataWarning,
     JointStateSeries,
     SignalSpec,
-    check_excitation,
     decimate,
-    load_segment,
     lowpass,
     make_segment,
     read_jointstate_topics,

@@ -21,15 +21,13 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 from scipy import signal
 
+from dvt_identify.bagload import load_bag_segments, load_segment, split_at_gaps
 from dvt_identify.data import (
     Checks,
     DataWarning,
     JointStateSeries,
     SignalSpec,
-    load_bag_segments,
-    load_segment,
     make_segment,
-    split_at_gaps,
     write_jointstate_bag,
 )
 from dvt_identify.description import load_description

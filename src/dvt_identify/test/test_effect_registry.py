@@ -3,6 +3,11 @@ a ``where`` builds and the model-node term it pushes (checked against the contra
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -125,3 +130,52 @@ def test_compiled_smooth_laws_are_the_model_friction_laws() -> None:
         for kind, p0, p1, p2, law in cases:
             assert simloop.smooth_value(kind, p0, p1, p2, v) == pytest.approx(
                 -law, rel=1e-12, abs=0.0)
+
+
+_NEW_MODULE = '''
+from dataclasses import dataclass
+import math
+from dvt_identify.effects.base import BuildContext, Effect, ParamSpec
+
+
+@dataclass
+class TanhDragForTest(Effect):
+    name = "tanh_drag_for_test"
+    state_dependent = True
+
+    @classmethod
+    def build(cls, ctx: BuildContext) -> Effect:
+        return cls(where=ctx.where, params=(ParamSpec("Cd" + ctx.suffix, 0.0, 0.0, math.inf,
+                                                      ctx.force_unit),),
+                   member=ctx.member_vector(), options=dict(ctx.options))
+'''
+
+
+def test_an_effect_in_a_new_module_registers_itself(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A class in a module nobody lists is found by the package's discovery and comes after
+    the suite's classes; every class of every module of the package is in the registry."""
+    from dvt_identify import effects
+    from dvt_identify.effects import base
+
+    for info in pkgutil.iter_modules(effects.__path__):
+        module = importlib.import_module(f"dvt_identify.effects.{info.name}")
+        for obj in vars(module).values():
+            if (isinstance(obj, type) and issubclass(obj, Effect) and obj is not Effect
+                    and "name" in obj.__dict__
+                    and obj.__module__ == module.__name__):
+                assert obj in REGISTRY, obj
+    (tmp_path / "drag_for_test.py").write_text(_NEW_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        found = effects.discover([str(tmp_path)], prefix="")
+        assert found[:-1] == REGISTRY  # the suite's classes first, in their order
+        new = found[-1]
+        assert new.__name__ == "TanhDragForTest" and new.name == "tanh_drag_for_test"
+        ctx = effects.BuildContext(name=new.name, where="carrier3", state_names=tuple(STATES),
+                                   input_names=tuple(INPUTS), force_unit="N m")
+        assert new.accepts(ctx) and new.build(ctx).params[0].name == "Cd"
+    finally:
+        base._REGISTERED[:] = [c for c in base._REGISTERED if c.name != "tanh_drag_for_test"]
+        sys.modules.pop("drag_for_test", None)
+    assert base.registered() == REGISTRY

@@ -19,6 +19,7 @@ import two_mass
 import yaml
 
 from dvt_identify import identifiability
+from dvt_identify.advice import experiment_for
 from dvt_identify.cli import main
 from dvt_identify.data import JointStateSeries, Segment, write_jointstate_bag
 from dvt_identify.description import load_description, parse_description
@@ -171,11 +172,11 @@ def test_b_a_duplicated_parameter_is_still_infinite(monkeypatch: pytest.MonkeyPa
 @pytest.mark.parametrize("name", ["dvt", "dvt-position", "dvt-thesis"])
 def test_d_dvt_descriptions_name_their_experiments(name: str) -> None:
     table = load_description(name).experiments
-    assert identifiability.experiment_for("band_gain_ring2", table) == (
+    assert experiment_for("band_gain_ring2", table) == (
         "dvt-experiment ident_shifts",
         "band 2 engaging against a slipping ring (gain and lag show only while the band slips)")
-    assert identifiability.experiment_for("td_brakes", table) == (
+    assert experiment_for("td_brakes", table) == (
         "dvt-experiment ident_shifts", "band engagements against slipping rings")
     for param in ("M22", "A11"):  # the mass entries, and the catch-all for the rest
-        row = identifiability.experiment_for(param, table)
+        row = experiment_for(param, table)
         assert row is not None and row[0] == "dvt-experiment ident"

@@ -1,4 +1,4 @@
-"""The choice among a round's passing trials (:func:`dvt_identify.loop.choose`): the simplest
+"""The choice among a round's passing trials (:func:`dvt_identify.selection.choose`): the simplest
 of those as good on validation as the largest-LR one.
 
 The trials are real :class:`Decision` objects for real effects; their stages are stand-ins that
@@ -15,8 +15,9 @@ import pytest
 
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.effects import Effect, make_effect
-from dvt_identify.loop import Decision, Stage, choose, shape_parameters
 from dvt_identify.scoring import CandidateScore
+from dvt_identify.selection import choose, shape_parameters
+from dvt_identify.stages import Decision, Stage
 
 DT = 0.002
 N = 2000

@@ -11,11 +11,12 @@ import pytest
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
-from dvt_identify import reference
+from dvt_identify import oerefine
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.errors import DataError, FitError
+from dvt_identify.lti import StateSpace
 from dvt_identify.metrics import figures
-from dvt_identify.reference import LinearReference, StateSpace
+from dvt_identify.reference import LinearReference
 
 Array = NDArray[np.float64]
 
@@ -126,7 +127,7 @@ def test_jacobian_equals_finite_differences() -> None:
             make_segment("b", np.arange(80) * 0.125, rng.standard_normal((80, nu)),
                          rng.standard_normal((80, ny)), ["u1", "u2"], ["y1", "y2"])]
     w = np.array([0.7, 1.9])
-    prob = reference._OEProblem(segs, w, n, nu, ny, True, 0.05)
+    prob = oerefine._OEProblem(segs, w, n, nu, ny, True, 0.05)
     theta = prob.pack(model, [rng.standard_normal(n), rng.standard_normal(n)])
     J = prob.jacobian(theta)
     Jfd = np.empty_like(J)
@@ -237,11 +238,11 @@ def test_no_continuous_equivalent_raises_naming_segment_and_rates() -> None:
 
 def test_an_overflowing_simulation_gives_a_finite_penalty() -> None:
     seg = make_segment("s", np.arange(3000) * 0.01, np.ones(3000), np.zeros(3000), ["u"], ["y"])
-    prob = reference._OEProblem([seg], np.ones(1), 1, 1, 1, False, 0.01)
+    prob = oerefine._OEProblem([seg], np.ones(1), 1, 1, 1, False, 0.01)
     theta = prob.pack(StateSpace(np.array([[1.5]]), np.ones((1, 1)), np.ones((1, 1)),
                                  np.zeros((1, 1)), 0.01), [np.ones(1)])
     r = prob.residual(theta)
-    assert np.all(np.isfinite(r)) and np.all(r == reference.PENALTY)
+    assert np.all(np.isfinite(r)) and np.all(r == oerefine.PENALTY)
     assert np.all(np.isfinite(prob.jacobian(theta)))
 
 

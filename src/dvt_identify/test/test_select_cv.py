@@ -19,7 +19,8 @@ from dvt_identify import pipeline
 from dvt_identify.data import Segment
 from dvt_identify.description import Description
 from dvt_identify.errors import DataError
-from dvt_identify.loop import LoopConfig, bag_of, cv_folds, identify
+from dvt_identify.loop import LoopConfig, identify
+from dvt_identify.stages import bag_of, cv_folds
 
 CFG = LoopConfig(starts=1, refit_starts=1, drift_windows=0)
 OFFSET = 0.3

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dvt_identify.data import Checks, Segment, SignalSpec, load_bag_segments
+from dvt_identify.bagload import load_bag_segments
+from dvt_identify.data import Checks, Segment, SignalSpec
 from dvt_identify.description import Description
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.metrics import figures

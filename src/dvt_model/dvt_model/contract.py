@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from dvt_model.errors import ContractError
+from dvt_model.laws import LAWS, TERM_LAWS, TORQUE_MAX
 
 # --------------------------------------------------------------------------- topics and names
 JOINT_STATES = "/dvt/joint_states"
@@ -217,11 +218,11 @@ MAX_EFFECT_TERMS = 32
 MAX_EFFECTS_JSON = 64 * 1024
 """Longest ``effects`` JSON text [characters]."""
 DEFAULT_EPS = 0.5
-"""Default smoothing speed of the sign in force laws [rad/s] (see :mod:`dvt_model.friction`)."""
+"""Default smoothing speed of the sign in force laws [rad/s] (:func:`dvt_model.laws.sign_eps`)."""
 
 _EPS = TermParam("eps", "rad/s", 1e-6, 1e3, default=DEFAULT_EPS,
                  doc="speed below which the sign is smoothed")
-_TORQUE_MAX = 1e4
+_TORQUE_MAX = TORQUE_MAX
 _MAX_REDUCTION = 1e6
 """Largest admissible ``reduction`` of a ``gravity`` term [1]."""
 _MAX_ORDER = 1e4
@@ -241,22 +242,19 @@ LIBRARY_INPUT_POWERS: tuple[str, ...] = ("", "abs_sq", "cube")
 LIBRARY_TRIG: tuple[str, ...] = ("", "cos", "sin")
 """Angle factors of a ``library`` term: 1, ``cos(order theta_a)``, ``sin(order theta_a)``."""
 
+
+
+def _law_kind(name: str) -> TermKind:
+    """The term kind of a speed law of :data:`dvt_model.laws.LAWS` (its parameters, plus the
+    sign's ``eps`` for a dry law)."""
+    law = LAWS[name]
+    params = tuple(TermParam(p.name, p.unit, p.lower, p.upper, lo_open=p.lo_open,
+                             default=p.default, doc=p.doc) for p in law.params)
+    return TermKind(law.name, params + ((_EPS,) if law.dry else ()), member=True, doc=law.doc)
+
+
 EFFECT_TERMS: dict[str, TermKind] = {k.kind: k for k in (
-    TermKind("coulomb", (
-        TermParam("Fc", "N m", 0.0, _TORQUE_MAX, doc="dry friction level, >= 0"),
-        TermParam("offset", "N m", -_TORQUE_MAX, _TORQUE_MAX, default=0.0,
-                  doc="constant torque against the positive direction"),
-        _EPS), member=True, doc="Fc sign_eps(v) + offset"),
-    TermKind("stribeck", (
-        TermParam("Fs", "N m", 0.0, _TORQUE_MAX, doc="Stribeck excess, >= 0"),
-        TermParam("vs", "rad/s", 0.0, 1e4, lo_open=True, doc="Stribeck speed, > 0"),
-        _EPS), member=True, doc="Fs exp(-(v/vs)^2) sign_eps(v)"),
-    TermKind("windage", (
-        TermParam("Cw", "N m s^2", 0.0, 1e3, doc="quadratic drag, >= 0"),),
-        member=True, doc="Cw |v| v"),
-    TermKind("viscous", (
-        TermParam("b", "N m s", 0.0, 1e3, doc="viscous drag, >= 0"),),
-        member=True, doc="b v"),
+    *(_law_kind(name) for name in TERM_LAWS),
     TermKind("delay", (
         TermParam("seconds", "s", 0.0, 1.0, doc="measurement delay"),),
         member=False, doc="outputs delayed by whole samples"),

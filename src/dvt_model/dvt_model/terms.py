@@ -28,7 +28,8 @@ brake3``, ``input_power`` in ``'', abs_sq, cube``; at most
 (:data:`dvt_model.contract.EFFECT_TERMS`, :func:`~dvt_model.contract.validate_effects`).
 
 Speed-dependent terms (:class:`ForceTerm`, :meth:`Terms.extra_force`): the force laws [N m] are
-:mod:`dvt_model.friction`'s, each acting against the member's motion: the generalised torque is
+:mod:`dvt_model.laws`' (the term's ``kind`` names the law in
+:data:`~dvt_model.laws.LAWS`), each acting against the member's motion: the generalised torque is
 ``-member * F(v)``. ``eps`` (default 0.5 rad/s, per term) smooths the sign for a stable
 sample-rate simulation.
 
@@ -72,7 +73,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from dvt_model import friction
 from dvt_model.backlash import OutputMap, OutputPlay, OutputSpline
 from dvt_model.contract import (
     ANGLE_TERM_KINDS,
@@ -81,6 +81,7 @@ from dvt_model.contract import (
     SPEED_NAMES,
     validate_effects,
 )
+from dvt_model.laws import LAWS
 
 Array = NDArray[np.float64]
 Vec = Array | Sequence[float]
@@ -102,14 +103,7 @@ class ForceTerm:
 
     def law(self, v: float) -> float:
         """The resisting force F(v) [N m] at member speed ``v`` [rad/s]."""
-        p = self.params
-        if self.kind == "coulomb":
-            return float(friction.coulomb(v, p["Fc"], p["offset"], p["eps"]))
-        if self.kind == "stribeck":
-            return float(friction.stribeck(v, p["Fs"], p["vs"], p["eps"]))
-        if self.kind == "windage":
-            return float(friction.windage(v, p["Cw"]))
-        return float(friction.viscous(v, p["b"]))
+        return float(LAWS[self.kind](v, self.params))
 
 
 _SPEED_CODES = {"": 0, "sign": 1, "abs_sq": 2, "cube": 3, "lin": 4, "abs": 5}

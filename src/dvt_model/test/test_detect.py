@@ -12,16 +12,12 @@ from dvt_model.detect import (
     Alarm,
     ChangeDetector,
     DetectorConfig,
-    _whiten,
-    ar1_noise,
-    cusum_run,
     design_threshold,
-    detection_delay,
     false_alarm_rate,
     reference_from_window,
     siegmund_arl,
-    simulate_clean,
 )
+from dvt_model.detect_sim import _whiten, ar1_noise, cusum_run, detection_delay, simulate_clean
 from dvt_model.errors import ParameterError
 
 

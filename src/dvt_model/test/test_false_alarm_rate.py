@@ -9,7 +9,7 @@ that bracket the live plant's (docs/loop.md section 6: sun shaft phi 0.81, theta
 3 phi 0.98, theta -0.67): white, AR(0.5), AR(0.8) and AR(0.98) with white sensor noise, AR(0.9).
 
 The simulation is the detector's exact algorithm, vectorised
-(:func:`dvt_model.detect.simulate_clean`; that it raises the class's alarms at the same samples
+(:func:`dvt_model.detect_sim.simulate_clean`; that it raises the class's alarms at the same samples
 is ``test_detect.py::test_class_and_vectorised_simulation_agree``). Alarms in ``T`` tested
 hours are a Poisson count: the test prints the rate per hour with its exact two-sided 95 %
 interval (chi-square) for every colour and pooled, and fails
@@ -37,7 +37,8 @@ import pytest
 from scipy.stats import chi2
 
 from dvt_model.config import detector_config
-from dvt_model.detect import DetectorConfig, simulate_clean
+from dvt_model.detect import DetectorConfig
+from dvt_model.detect_sim import simulate_clean
 
 pytestmark = pytest.mark.timeout(600)
 

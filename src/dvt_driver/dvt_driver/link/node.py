@@ -30,12 +30,13 @@ after a refusal or trip). All names come from :mod:`dvt_model.contract`.
 The serial I/O runs in one dedicated thread: it feeds the session with time, link events and
 received frames and executes the actions the session returns (reopen, HELLO/CONFIG/COMMAND
 frames), decodes, stamps and publishes samples; the executor only runs command callbacks,
-services, the lifecycle and the diagnostics timer.
+services, the lifecycle and the diagnostics timer. What that thread owns besides the session is
+in :mod:`dvt_driver.link.node_io`, the ``/diagnostics`` in
+:mod:`dvt_driver.link.node_diagnostics` (the node's base class).
 """
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -44,18 +45,19 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Int8
 from std_srvs.srv import Trigger
 
 from dvt_driver.errors import CommandRefusedError, DvtDriverError, LinkError, ProtocolError
-from dvt_driver.link.clock import ClockMapper
-from dvt_driver.link.protocol import Command, Mode, Sample, Status, unwrap_count
-from dvt_driver.link.safety import MotorMode, Supervisor
+from dvt_driver.link.node_diagnostics import DriverDiagnostics
+from dvt_driver.link.node_io import _flags, _Io
+from dvt_driver.link.protocol import Command, Mode, Sample
+from dvt_driver.link.safety import Supervisor
 from dvt_driver.link.serial_link import LinkState, SerialLink
-from dvt_driver.link.session import Actions, LogLevel, Session, SessionTiming
+from dvt_driver.link.session import Actions, LogLevel
 from dvt_driver.link.settings import DEFAULT_SETTINGS, DriverSettings, parse_settings
 from dvt_model import rosutil
 from dvt_model.contract import (
@@ -63,12 +65,10 @@ from dvt_model.contract import (
     CMD_GEAR,
     CMD_MOTOR_CURRENT,
     CMD_SUN_SPEED,
-    CURRENT_NAMES,
     CURRENTS,
     DIAGNOSTICS,
     DRIVER_NODE,
     JOINT_STATES,
-    SPEED_NAMES,
     SRV_DRIVER_RELEASE_BRAKES,
     SRV_DRIVER_STOP,
 )
@@ -98,73 +98,8 @@ _DESCRIPTIONS = {
 }
 
 
-_INFORMATIVE = frozenset({"frames_good"})  # counters whose growth is no problem
-_TWO_PI = 2.0 * math.pi
 
-
-def _flags(status: Status) -> frozenset[str]:
-    out = []
-    if status & Status.FAULT:
-        out.append("FAULT")
-    if status & Status.OVERSPEED:
-        out.append("OVERSPEED")
-    if status & Status.WATCHDOG:
-        out.append("WATCHDOG")
-    return frozenset(out)
-
-
-
-class _Io:
-    """What the I/O thread owns besides the session: link, clock mapping, reusable messages."""
-
-    def __init__(self, settings: DriverSettings, link: SerialLink) -> None:
-        self.settings = settings
-        self.link = link
-        self.session = Session(session_timing(settings), name=settings.port)
-        self.clock = ClockMapper(settings.clock_window)
-        self.published = 0
-        self.last_status = Status(0)
-        self.last_sample: Sample | None = None
-        self.js_msg = rosutil.joint_state(0, SPEED_NAMES, velocity=(0.0, 0.0))
-        # with positions (protocol version 2): the same names, position [rad] and velocity
-        self.js_pos_msg = rosutil.joint_state(0, SPEED_NAMES, velocity=(0.0, 0.0))
-        self.js_pos_msg.position = [0.0, 0.0]
-        self.cur_msg = rosutil.joint_state(0, CURRENT_NAMES, effort=(0.0,) * 4)
-        self.counts: list[int] | None = None  # unwrapped encoder counts (sun, output)
-        self.counts_cpr: tuple[int, int] | None = None  # resolution they were counted with
-
-    def positions(self, msg: Sample, reset: bool) -> tuple[float, float] | None:
-        """``(sun_shaft, carrier3)`` angles [rad] of a sample, or ``None`` when the session
-        carries no counts (version 1, or no HELLO_ACK seen yet).
-
-        The i32 counts are unwrapped against the previous sample (exact while an encoder moves
-        less than 2**31 counts between samples); a controller reset or a change of resolution
-        restarts from the raw counts. An encoder with 0 counts/rev (absent) gives NaN.
-        """
-        cpr = self.session.counts_per_rev
-        if cpr is None or msg.counts is None:
-            self.counts = None
-            return None
-        if self.counts is None or reset or cpr != self.counts_cpr:
-            self.counts = [msg.counts[0], msg.counts[1]]
-            self.counts_cpr = cpr
-        else:
-            c = self.counts
-            c[0] = unwrap_count(c[0], msg.counts[0])
-            c[1] = unwrap_count(c[1], msg.counts[1])
-        c = self.counts
-        return (_TWO_PI * c[0] / cpr[0] if cpr[0] else math.nan,
-                _TWO_PI * c[1] / cpr[1] if cpr[1] else math.nan)
-
-
-def session_timing(settings: DriverSettings) -> SessionTiming:
-    """The session timing for the driver's settings."""
-    return SessionTiming(sample_period_us=settings.sample_period_us,
-                         keepalive_period=1.0 / settings.keepalive_rate_hz,
-                         reconnect_interval=settings.reconnect_interval)
-
-
-class DriverNode(LifecycleNode):
+class DriverNode(DriverDiagnostics):
     """The lifecycle driver node (module docstring; ``docs/driver.md``)."""
 
     def __init__(self) -> None:
@@ -627,119 +562,6 @@ class DriverNode(LifecycleNode):
             self.pub_js.publish(js)
             self.pub_cur.publish(cur)
             io.published += 1
-
-
-    # -- diagnostics (executor thread) -----------------------------------------------------
-
-    def _diag_tick(self) -> None:
-        now = time.monotonic()
-        if not self._urgent.is_set() and now - self._diag_last < 1.0:
-            return
-        self._urgent.clear()
-        self._diag_last = now
-        try:
-            self.pub_diag.publish(self._diagnostics(now))
-        except Exception as exc:  # diagnostics must never take the node down
-            self.get_logger().error(f"diagnostics failed: {exc!r}")
-
-    def _diagnostics(self, now: float) -> DiagnosticArray:
-        io, link, sup, s = self._io, self.link, self.supervisor, self.settings
-        values: dict[str, Any] = {"lifecycle_state": self._state_label,
-                                  "invalid_transition_ids": self._transition_errors}
-        if io is None or link is None or sup is None or s is None:
-            level = rosutil.OK if not self._last_config_error else rosutil.ERROR
-            message = (self._state_label if not self._last_config_error
-                       else f"configure failed: {self._last_config_error}")
-            values["last_configure_error"] = self._last_config_error
-            return rosutil.diagnostic(self, DRIVER_NODE, level, message, values)
-        st = link.stats
-        ses = io.session
-        with self._lock:
-            brakes = sup.brakes_at(now)
-        dt = max(1e-3, now - self._diag_prev_time)
-        rate = (ses.samples - self._diag_prev_samples) / dt
-        self._diag_prev_time, self._diag_prev_samples = now, ses.samples
-        counters = {
-            "frames_good": st.frames_good, "frames_bad": st.frames_bad,
-            "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded,
-            "lost_samples": st.lost_samples, "controller_resets": st.resets,
-            "reconnects": st.reconnects, "disconnects": st.disconnects,
-            "write_errors": st.write_errors, "duplicates": ses.duplicates,
-            "stream_timeouts": ses.stream_timeouts, "nacks": ses.nacks,
-            "unanswered": ses.unanswered, "refusals": sup.refusals,
-            "safety_trips": sup.trips, "watchdog_trips": sup.watchdog_trips,
-        }
-        prev, self._diag_prev = self._diag_prev, dict(counters)
-        grew = [k for k, v in counters.items()
-                if prev and k not in _INFORMATIVE and v > prev.get(k, 0)]
-        values.update({
-            "port": s.port, "baud": s.baud, "link_state": link.state.value,
-            "last_link_error": link.last_error or "",
-            "session": ses.open, "session_state": ses.state.value,
-            "hello_give_ups": ses.hello_give_ups, "reopen_attempts": ses.reopen_attempts,
-            "firmware_id": ses.hello_ack.firmware_id if ses.hello_ack else "",
-            "protocol_version": ses.protocol_version or 0,
-            "version_fallbacks": ses.version_fallbacks,
-            "positions": ses.counts_per_rev is not None,
-            "encoder_counts_per_rev": (list(ses.counts_per_rev) if ses.counts_per_rev
-                                       else []),
-            "controller_watchdog_s": (f"{ses.hello_ack.watchdog_timeout_us * 1e-6:g}"
-                                      if ses.hello_ack else ""),
-            "sample_rate_hz": f"{rate:.1f}", "expected_sample_rate_hz": f"{s.sample_rate_hz:g}",
-            "samples": ses.samples, "samples_published": io.published,
-            **counters,
-            "bytes_received": st.bytes_received,
-            "commands_sent": ses.commands_sent, "acks": ses.acks,
-            "nacks_by_reason": ",".join(f"{k}={v}" for k, v in ses.nacks_by_reason.items()),
-            "last_refusal": sup.last_refusal, "last_trip": sup.last_trip,
-            "mode": MotorMode(sup.mode).name, "setpoint": f"{sup.setpoint:g}",
-            "brake_setpoints": ",".join(f"{b:g}" for b in brakes),
-            "gear": "" if sup.gear is None else sup.gear,
-            "shifting": sup.shift is not None,
-            "overspeed": sup.overspeed,
-            "controller_status": f"0x{int(io.last_status):02X}",
-            "stamp_offset_ns": "" if io.clock.offset_ns is None else io.clock.offset_ns,
-            "stamp_guarded": io.clock.guarded,
-            "stamp_resets": io.clock.resets,
-        })
-        level, problems = rosutil.OK, []
-        if self._active:
-            if link.state is not LinkState.CONNECTED:
-                level = rosutil.ERROR
-                problems.append(f"link {link.state.value}: {link.last_error}")
-            elif not ses.open:
-                level = rosutil.ERROR
-                problems.append("no session with the controller (no HELLO_ACK)" if
-                                not ses.hello_refused else "controller refused our protocol")
-            elif rate < 0.5:
-                level = rosutil.ERROR
-                problems.append("no samples")
-            elif rate < 0.9 * s.sample_rate_hz:
-                level = max(level, rosutil.WARN)
-                problems.append(f"sample rate {rate:.0f} Hz below {s.sample_rate_hz:g} Hz")
-            if io.last_status & Status.FAULT:
-                level = rosutil.ERROR
-                problems.append("controller FAULT latched")
-        elif link.state is not LinkState.CONNECTED:
-            level = rosutil.WARN
-            problems.append(f"link {link.state.value}: {link.last_error}")
-        if ses.config_refused:
-            level = rosutil.ERROR
-            problems.append(f"controller refused sample period {s.sample_period_us} µs")
-        if sup.overspeed:
-            level = rosutil.ERROR
-            problems.append("sun overspeed")
-        if grew:
-            level = max(level, rosutil.WARN)
-            problems.append("new " + ", ".join(grew))
-            if "refusals" in grew:
-                problems.append(f"last refusal: {sup.last_refusal}")
-            if {"safety_trips", "watchdog_trips"} & set(grew):
-                problems.append(f"last trip: {sup.last_trip}")
-        message = self._state_label + (f", {rate:.0f} Hz" if self._active else "")
-        if problems:
-            message += ": " + "; ".join(problems)
-        return rosutil.diagnostic(self, DRIVER_NODE, level, message, values)
 
 
 def main(args: list[str] | None = None) -> None:

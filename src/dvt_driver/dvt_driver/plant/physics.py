@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from dvt_driver.errors import PlantError
 from dvt_driver.plant.hidden import Change, HiddenEffects, WetBrake, scheduled_values
-from dvt_model import friction
+from dvt_model import laws
 from dvt_model.brake import capacity_step
 from dvt_model.dynamics import rigid_model
 from dvt_model.hybrid import HybridModel, HybridState
@@ -225,7 +225,7 @@ class Transmission:
                                        self.h)
         for a, bump, eps in self._bumps:
             v = float(a @ omega)
-            f = f - a * (bump.level(float(a @ theta)) * math.tanh(v / eps))
+            f = f - a * (bump.level(float(a @ theta)) * float(laws.sign_eps(v, eps)))
         return f
 
     def _spline_torque(self, w_c3: float) -> float:
@@ -301,7 +301,8 @@ class FrictionForces:
     """Generalised friction + windage torque of a set of members, vectorised.
 
     Args:
-        effects: the hidden effects (coulomb, stribeck, windage are used).
+        effects: the hidden effects (coulomb, stribeck, windage and the table's ``laws`` are
+            used).
         forms: member -> linear form (2,) in ``(omega_sun, omega_carrier3)``.
         mobility: member -> ``a^T M^-1 a`` [1/(kg m^2)] (for the stability floor).
         dt: the plant's physics step [s].
@@ -313,7 +314,7 @@ class FrictionForces:
         self.members = members
         n = len(members)
         self.A = np.array([forms[m] for m in members], dtype=float).reshape(n, 2)
-        # per-member parameters as arrays: the dvt_model.friction laws broadcast over members
+        # per-member parameters as arrays: the dvt_model.laws functions broadcast over members
         # (typed Any: the laws are annotated for scalars)
         self.fc: Any = np.array([effects.coulomb.get(m, 0.0) for m in members])
         st = [effects.stribeck.get(m) for m in members]
@@ -333,6 +334,9 @@ class FrictionForces:
         self._level: Any = self.fc + self.s_fc  # Coulomb level of both laws
         self._has_stribeck = bool(np.any(self.s_fc + self.s_dF > 0.0))
         self._has_windage = bool(np.any(self.c_w > 0.0))
+        # the table's laws named in ``laws`` (HiddenEffects.laws), with the member's smoothing
+        self._laws = [(i, laws.LAWS[name], {**params, "eps": float(self.v_eps[i])})
+                      for i, m in enumerate(members) for name, params in effects.laws.get(m, ())]
 
     def __bool__(self) -> bool:
         return bool(self.members)
@@ -341,11 +345,15 @@ class FrictionForces:
         """Friction + windage torque on each member [N m], shape (n_members,)."""
         v = self.A @ omega
         u = v / self.v_eps
-        F = friction.coulomb(u, self._level, 0.0, 1.0)
+        F = laws.coulomb(u, self._level, 0.0, 1.0)
         if self._has_stribeck:
-            F = F + friction.stribeck(u, self.s_dF, self._vs_n, 1.0, self.s_delta)
+            F = F + laws.stribeck(u, self.s_dF, self._vs_n, 1.0, self.s_delta)
         if self._has_windage:
-            F = F + friction.windage(v, self.c_w)
+            F = F + laws.windage(v, self.c_w)
+        if self._laws:
+            F = np.array(F, dtype=float)
+            for i, law, fields in self._laws:
+                F[i] += law(float(v[i]), fields)
         return np.asarray(F)
 
     def generalised(self, omega: Array) -> Array:

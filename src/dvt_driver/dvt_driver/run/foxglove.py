@@ -232,30 +232,32 @@ def convert_bag(bag: Path, out: Path, settings: BridgeSettings) -> dict[str, int
     Returns the number of messages per channel.
 
     Raises:
-        BridgeSettingsError: ``out`` exists or ``bag`` is not a bag directory.
+        BridgeSettingsError: ``out`` exists, ``bag`` is not a bag directory or cannot be read
+            (the recording's reader's error, naming the bag and topic).
     """
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    from dvt_model.errors import BagError
+    from dvt_model.recording.messages import BagMessages, decode
 
     if out.exists():
         raise BridgeSettingsError(f"--out: {out} exists; will not overwrite it")
     if not (bag / "metadata.yaml").exists():
         raise BridgeSettingsError(f"--bag: {bag} is not a bag directory (no metadata.yaml)")
     bridge = Bridge(settings)
-    chans = Channels(str(out))
+    sources = {s.source: s for s in bridge.sources}
     try:
-        with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-            sources = {s.source: s for s in bridge.sources}
-            wanted = [c for c in reader.connections if c.topic in sources]
-            for conn, t, raw in reader.messages(connections=wanted):
-                if sources[conn.topic].decimated:
-                    stamp = peek_stamp_ns(raw)
-                    if not bridge.decimator.due(conn.topic, stamp):
+        with BagMessages(bag) as reader:
+            wanted = [t for t in reader.types if t in sources]
+            chans = Channels(str(out))
+            try:
+                for m in reader.messages(wanted):
+                    if (sources[m.topic].decimated
+                            and not bridge.decimator.due(m.topic, peek_stamp_ns(m.data))):
                         continue
-                msg = reader.deserialize(raw, conn.msgtype)
-                chans.log(bridge.handle(conn.topic, msg, t))
-    finally:
-        chans.close()
+                    chans.log(bridge.handle(m.topic, decode(m), m.log_time_ns))
+            finally:
+                chans.close()
+    except BagError as exc:
+        raise BridgeSettingsError(f"--bag: {exc}") from exc
     return {k: v for k, v in bridge.forwarded.items() if v}
 
 

@@ -64,18 +64,22 @@ uncertain by about ``1/sqrt(2 (N - 1))`` (10 % at N = 50) and a coverage by
 
 Comparison mode::
 
-    dvt-bench identify --compare [EST=VAL ...] [--starts K] [--fit-decimate Q] [--json]
+    dvt-bench identify --compare [EST=VAL ...] [--no-peer] [--starts K] [--fit-decimate Q]
+                       [--json]
 
 Runs the identification (baseline and augment loop, the bundled description) on each
 estimation/validation pair (default: ``bags/ident-coulomb`` with ``bags/ident-coulomb-val`` and
 ``bags/ident-none-1`` with ``bags/ident-none-val``, the validation runs written by
 ``scripts/make_validation_bags.sh``) and prints per pair: the validation fit per output (free
-run from the first validation sample, like the reference, and with the initial state estimated,
+run from the first validation sample, like the peer, and with the initial state estimated,
 like the report), the largest relative error of ``M`` and ``D`` against the plant of
-``truth.yaml``, the identification seconds, and the issue's reference figures
-(:data:`REFERENCE`: a multiple-shooting fit of the same grey box told the friction structure,
-and this identifier before the fit-rate fix) with the targets: validation fit no worse, ``M``
-and ``D`` within 2 %, at least twice as fast.
+``truth.yaml`` and the identification seconds; beside them the same figures of a peer run in the
+same process on the same pair (:mod:`dvt_identify.bench_identify.peer_casadi`: a
+multiple-shooting fit of the same grey box by CasADi + IPOPT, told the friction structure of
+``truth.yaml``, started from the description's prior), and the targets against it: validation
+fit no worse, ``M`` and ``D`` within 2 %, at least twice as fast. CasADi is an optional
+benchmark dependency (``requirements-dev.txt``): without it the output says ``peer not run:
+casadi not installed``; ``--no-peer`` skips the peer.
 
 Misspecified Monte Carlo (``--monte-carlo N --coloured [--ar 0.9] [--unmodelled 0.02]``): the
 same records with AR(1) output noise (coefficient ``ar`` per sample, the same standard
@@ -108,7 +112,6 @@ from dvt_identify.bench_identify.common import (
 )
 from dvt_identify.bench_identify.compare import (
     COMPARE_PAIRS,
-    REFERENCE,
     pretty_compare,
     run_compare,
 )
@@ -128,7 +131,6 @@ __all__ = [
     "COMPARE_PAIRS",
     "DEFAULT_ESTIMATION",
     "DEFAULT_VALIDATION",
-    "REFERENCE",
     "coloured_noise",
     "crlb_std",
     "main",
@@ -191,9 +193,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="copy the cut bags and the reports to this new directory")
     c = p.add_argument_group("comparison mode")
     c.add_argument("--compare", nargs="*", default=None, metavar="EST=VAL",
-                   help="identify and compare with the reference fit: estimation=validation "
+                   help="identify and compare with the peer (multiple shooting, CasADi + "
+                        "IPOPT, run on the same data): estimation=validation "
                         "bag pairs (default: bags/ident-coulomb=bags/ident-coulomb-val "
                         "bags/ident-none-1=bags/ident-none-val)")
+    c.add_argument("--no-peer", action="store_true",
+                   help="--compare without the peer (the identifier's figures only)")
     h = p.add_argument_group("long-recording mode")
     h.add_argument("--hours", type=float, default=None, metavar="H",
                    help="generate H hours at 1 kHz through the offline runner and identify "
@@ -241,7 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     p.error(f"--compare: expected ESTIMATION=VALIDATION, got {item!r}")
                 pairs.append((e, v))
             res = run_compare(pairs or None, args.description, args.starts, args.fit_decimate,
-                              log)
+                              log, peer=not args.no_peer)
         elif args.hours is not None:
             res = run_hours(args.hours, args.description,
                             Path(args.cache) if args.cache else None, args.run_minutes,

@@ -4,10 +4,13 @@ Each effect is one class (:mod:`dvt_identify.effects.base` describes the model a
 effect may have): it declares its vocabulary word, its parameters with their bounds and physical
 constraints (:meth:`~dvt_identify.effects.base.Effect.build`), its simulation and scoring hooks
 and the model-node effect term it pushes
-(:meth:`~dvt_identify.effects.base.Effect.model_term`). :data:`REGISTRY` is the tuple of
-classes; :func:`make_effect` builds the first class of the registry with the given name that
-accepts the ``where`` and options. Adding an effect is adding one class (and its test) to a
-module here and to :data:`REGISTRY`.
+(:meth:`~dvt_identify.effects.base.Effect.model_term`). Effects register themselves: every
+:class:`~dvt_identify.effects.base.Effect` subclass that declares a ``name`` is in the registry
+(:meth:`~dvt_identify.effects.base.Effect.__init_subclass__`), and this package imports every
+module in it, so :data:`REGISTRY` (the classes by their ``order``) holds a class defined in a
+new module here without any list being edited. :func:`make_effect` builds the first class of
+the registry with the given name that accepts the ``where`` and options. Adding an effect is
+adding one class (and its test) in a module here (``docs/effects.md``).
 
 Every effect has parameters (:class:`ParamSpec`) with *null* values for which it vanishes. The
 scorer (:mod:`dvt_identify.loop`) uses the output sensitivities at the null values as regressors
@@ -22,6 +25,8 @@ friction ``-dFv |s|``, so ``Fv+ = Fv + dFv``, ``Fv- = Fv - dFv``).
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 from collections.abc import Sequence
 
 from dvt_identify.effects.backlash import Backlash, CompliantOutputBacklash, OutputBacklash
@@ -33,6 +38,7 @@ from dvt_identify.effects.base import (
     ScoringContext,
     SegmentView,
     Term,
+    registered,
 )
 from dvt_identify.effects.brakes import BrakeEngagement, BrakeLockup, EngagementDeadTime
 from dvt_identify.effects.friction import (
@@ -53,27 +59,18 @@ from dvt_identify.effects.sensors import (
 )
 from dvt_identify.errors import DescriptionError
 
-REGISTRY: tuple[type[Effect], ...] = (
-    CoulombFriction,
-    StribeckFriction,
-    Windage,
-    CompliantOutputBacklash,  # backlash@state with compliant: true
-    OutputBacklash,           # backlash@state
-    Backlash,                 # backlash@input
-    MeasurementDelay,
-    EngagementDeadTime,       # brake_engagement with dead_time: true
-    BrakeEngagement,
-    BrakeLockup,
-    SensorGain,
-    PeriodicDisturbance,
-    AsymmetricFriction,
-    SignBlindSensor,          # sensor maps on an output (dvt_identify.effects.sensors)
-    SensorSaturation,
-    SensorQuantisation,
-    SensorOffset,
-    GravityLoad,
-    Unlisted,                 # the generic term library (dvt_identify.unlisted)
-)
+
+def discover(path: Sequence[str] = tuple(__path__), prefix: str = f"{__name__}."
+             ) -> tuple[type[Effect], ...]:
+    """Import every module in the directories ``path`` (as ``prefix + name``): their effect
+    classes register themselves on import; the registry then
+    (:func:`~dvt_identify.effects.base.registered`)."""
+    for module in pkgutil.iter_modules(list(path)):
+        importlib.import_module(prefix + module.name)
+    return registered()
+
+
+REGISTRY: tuple[type[Effect], ...] = discover()
 """Every effect class; for a name shared by several, the first that accepts a ``where`` wins."""
 
 VOCABULARY: tuple[str, ...] = tuple(dict.fromkeys(cls.name for cls in REGISTRY))
@@ -124,5 +121,5 @@ __all__ = [
     "EngagementDeadTime", "GravityLoad", "MeasurementDelay", "OutputBacklash", "ParamSpec",
     "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "SensorOffset",
     "SensorQuantisation", "SensorSaturation", "SignBlindSensor", "StribeckFriction",
-    "Term", "Unlisted", "Windage", "make_effect",
+    "Term", "Unlisted", "Windage", "discover", "make_effect",
 ]

@@ -43,6 +43,7 @@ class Backlash(Effect):
     """
 
     name = "backlash"
+    order = 42
     node_input_transform = True
 
     @classmethod
@@ -70,6 +71,7 @@ class OutputBacklash(Effect):
     """
 
     name = "backlash"
+    order = 41
 
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:
@@ -136,6 +138,7 @@ class CompliantOutputBacklash(Effect):
     """
 
     name = "backlash"
+    order = 40
 
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:

@@ -11,7 +11,7 @@ speed is ``s_e = c_e . x`` and, by virtual work, a force ``tau_e`` on it is the 
   disturbance phase-locked to the measured member angle);
 - state-dependent member force evaluated at the start of each step and held over it: a smooth
   ``tau = g(s)`` (Stribeck, windage, asymmetric viscous friction; the laws of
-  :mod:`dvt_model.friction`, compiled in :mod:`dvt_identify.simloop`) or dry friction with a
+  :mod:`dvt_model.laws`, compiled in :mod:`dvt_identify.simloop`) or dry friction with a
   stick rule and a capacity ``C_k`` (Coulomb, brake lock-up);
 - output transform ``y = h(x)`` (measurement delay, sensor gain).
 
@@ -255,6 +255,18 @@ Term = dict[str, Any]
 """A model-node effect term (:data:`dvt_model.contract.EFFECT_TERMS`)."""
 
 
+_REGISTERED: list[type[Effect]] = []
+"""Every effect class in the order defined (:meth:`Effect.__init_subclass__`)."""
+
+
+def registered() -> tuple[type[Effect], ...]:
+    """Every effect class defined so far, by :attr:`Effect.order` (ties in definition order).
+
+    :data:`dvt_identify.effects.REGISTRY` is this once every module of the package is
+    imported."""
+    return tuple(sorted(_REGISTERED, key=lambda c: c.order))
+
+
 @dataclass
 class Effect:
     """Base class of a candidate effect; subclasses override the parts they have.
@@ -270,6 +282,10 @@ class Effect:
         node_input_transform: the model node applies the effect's input transform itself, to
             the raw current before its model sees it (a ``dead_zone`` term): the push does not
             count it as an input transform the node's input terms would miss.
+        order: the class's place in the registry (:func:`registered`; lower first, ties in
+            definition order): the vocabulary lists names in the order of their first class,
+            and of several classes sharing a name the first that accepts a ``where`` is built
+            (the more specific one first). Default: after the suite's own effects.
         global_map: a non-local output map (sign-blind, saturation) that the baseline fit can
             absorb so that no local score sees it: the loop refits it when its
             :meth:`scoring_evidence` reports ``signature: True`` (a data signature a reader
@@ -284,6 +300,7 @@ class Effect:
     """
 
     name: ClassVar[str] = "effect"
+    order: ClassVar[float] = 1000.0
     state_dependent: ClassVar[bool] = False
     band_parameter: ClassVar[str | None] = None
     no_term: ClassVar[str] = "the model node has no such term"
@@ -294,6 +311,14 @@ class Effect:
     member: Array | None = None
     index: int = -1
     options: dict[str, object] = field(default_factory=dict)
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Register every subclass that declares its own :attr:`name` (the registry,
+        :func:`registered`): an effect class is found by being defined, in any module of
+        :mod:`dvt_identify.effects` (the package imports them all)."""
+        super().__init_subclass__(**kwargs)
+        if "name" in cls.__dict__:
+            _REGISTERED.append(cls)
 
     # -- construction ----------------------------------------------------------------------
     @classmethod

@@ -27,6 +27,7 @@ class BrakeEngagement(Effect):
     """
 
     name = "brake_engagement"
+    order = 61
     band_parameter = "band_time_constant"
     no_term = "the model node has one engagement lag per band (no second stage)"
 
@@ -69,6 +70,7 @@ class EngagementDeadTime(Effect):
     """
 
     name = "brake_engagement"
+    order = 60
     no_term = "the model node has no engagement dead time"
     indices: tuple[int, ...] = ()
 
@@ -126,6 +128,7 @@ class BrakeLockup(Effect):
     """
 
     name = "brake_lockup"
+    order = 70
     state_dependent = True
     band_parameter = "band_gain"
     no_term = "the model node's band model takes the brake gains (band_gain), not a term"

@@ -1,11 +1,11 @@
 """Friction and drag effects on a member: Coulomb (with offset), Stribeck, windage and
 direction-dependent viscous friction.
 
-Their laws are those of :mod:`dvt_model.friction` (coded as ``(kind, p0, p1, p2)``, compiled
+Their laws are those of :mod:`dvt_model.laws` (coded as ``(kind, p0, p1, p2)``, compiled
 in :mod:`dvt_identify.simloop`). The sign of the dry laws (Coulomb, Stribeck) is exact by
 default, applied with a stick rule by the simulation; option ``eps`` (> 0, the member's speed
 unit) smooths it to ``tanh(s / eps)`` instead, as the model node and the plant do
-(:func:`dvt_model.friction.sign_eps`): the simulated output is then smooth in the parameters,
+(:func:`dvt_model.laws.sign_eps`): the simulated output is then smooth in the parameters,
 so the output-error optimum is unique where the stick rule's switching leaves many local ones
 (measured on the EMPS drive: 15 random starts reach 15 optima with the stick rule, one with
 ``eps`` = 1 mm/s). ``eps`` is a property of the law, not a fitted parameter: about 1 % of the
@@ -30,7 +30,7 @@ from dvt_identify.effects.base import (
     speed_scale,
 )
 from dvt_identify.errors import DescriptionError
-from dvt_identify.simloop import ABS_VISCOUS, COULOMB, STRIBECK, WINDAGE
+from dvt_model.laws import ABS_VISCOUS, COULOMB, STRIBECK, WINDAGE
 
 
 def _eps(ctx: BuildContext) -> float:
@@ -57,6 +57,7 @@ class CoulombFriction(Effect):
     """
 
     name = "coulomb_friction"
+    order = 10
     state_dependent = True
 
     @classmethod
@@ -132,6 +133,7 @@ class StribeckFriction(Effect):
     """
 
     name = "stribeck_friction"
+    order = 20
     state_dependent = True
 
     @classmethod
@@ -193,6 +195,7 @@ class Windage(Effect):
     """Quadratic drag ``-Cw s |s|``; parameter ``Cw`` (>= 0). Model node: a ``windage`` term."""
 
     name = "windage"
+    order = 30
     state_dependent = True
 
     @classmethod
@@ -219,6 +222,7 @@ class AsymmetricFriction(Effect):
     """
 
     name = "asymmetric_friction"
+    order = 100
     state_dependent = True
     no_term = "the model node has no direction-dependent viscous term"
 

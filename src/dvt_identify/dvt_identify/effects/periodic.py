@@ -48,6 +48,7 @@ class PeriodicDisturbance(Effect):
     """
 
     name = "periodic_disturbance"
+    order = 90
     no_term = ("clocked on time (clock: time): the model node's periodic term "
                "(angle_periodic) is phase-locked to an angle")
 

@@ -90,6 +90,7 @@ class GravityLoad(Effect):
     """
 
     name = "gravity_load"
+    order = 150
     no_term = ""
 
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
@@ -401,6 +402,7 @@ class Unlisted(Effect):
     """
 
     name = "unlisted"
+    order = 160
     no_term = "every coefficient is 0"
 
     def model_terms(self, p: Array, outputs: Sequence[str]) -> list[Term] | None:

@@ -44,6 +44,7 @@ class MeasurementDelay(Effect):
     (option, default 0.02 s). Model node: a ``delay`` term (all outputs, whole samples)."""
 
     name = "measurement_delay"
+    order = 50
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -109,6 +110,7 @@ class SensorGain(Effect):
     Model node: a ``gain`` term on that output (when the node admits the value)."""
 
     name = "sensor_gain"
+    order = 80
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -264,6 +266,7 @@ class SignBlindSensor(Effect):
     (inadmissible). No model-node term."""
 
     name = "sign_blind"
+    order = 110
     global_map = True
 
     @classmethod
@@ -347,6 +350,7 @@ class SensorOffset(Effect):
     output units, unbounded, null 0). No model-node term."""
 
     name = "sensor_offset"
+    order = 140
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -397,6 +401,7 @@ class SensorSaturation(Effect):
     model-node term."""
 
     name = "sensor_saturation"
+    order = 120
     global_map = True
 
     @classmethod
@@ -466,6 +471,7 @@ class SensorQuantisation(Effect):
     overrides it). No model-node term."""
 
     name = "sensor_quantisation"
+    order = 130
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:

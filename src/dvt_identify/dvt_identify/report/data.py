@@ -427,6 +427,8 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
         "linear_reference": reference_summary(result),
         "records_agree": (result.agreement.as_dict() if getattr(result, "agreement", None)
                           is not None else None),
+        "records_carrier": (result.carrier.as_dict() if getattr(result, "carrier", None)
+                            is not None else None),
     }
     if rep["candidates"] is None:
         del rep["candidates"]

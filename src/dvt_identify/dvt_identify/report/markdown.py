@@ -36,6 +36,39 @@ def _f(x: Any, nd: int = 4) -> str:
     return f"{v:.{nd}g}"
 
 
+def _carrier_lines(c: dict[str, Any] | None, outputs: Sequence[str]) -> list[str]:
+    """The test table of the plain final model and the models carrying the records'
+    disagreement (:mod:`dvt_identify.carrier`), with the choice made on estimation data."""
+    if not c:
+        return []
+    unit = f" [{c['unit']}]" if c.get("unit") else ""
+    kinds = {"none": "final model (plain)", "constant": "final + constant input bias",
+             "direction": "final + input bias per direction of motion"}
+    lines = ["", f"Models carrying the disagreement: a disturbance state (an input bias) set, "
+             f"like the initial state, in each test segment's first {c['init_window']} samples "
+             "only; the rest scored untouched.", "",
+             "| model | chosen on estimation data | "
+             + " | ".join(f"{o} fit % | {o} RMSE" for o in outputs)
+             + f" | bias set in the window ± std{unit} | the windows' bias on estimation "
+             f"blocks (RMS){unit} |",
+             "|---|---|" + "---|---|" * len(outputs) + "---|---|"]
+    scatter = {s["kind"]: s.get("window_bias_scatter") or [] for s in c["choice"]["scores"]}
+    for row in c["test"]:
+        f = row["figures"]
+        bias = "; ".join(", ".join(
+            f"{lab} {_f(v, 3)} ± {_f(s, 2)}" if s is not None else f"{lab} not seen (0)"
+            for lab, v, s in zip(b["labels"], b["bias"], b["std"], strict=True))
+            for b in row["biases"]) or "-"
+        lines.append(f"| {kinds.get(row['kind'], row['kind'])} | "
+                     f"{'**yes**' if row['kind'] == c['chosen'] else 'no'} | "
+                     + " | ".join(f"{_f(f['fit_percent'][o])} | {_f(f['rmse'][o])}"
+                                  for o in outputs) + f" | {bias} | "
+                     + (", ".join(_f(v, 3) for v in scatter.get(row["kind"], [])) or "-")
+                     + " |")
+    lines += ["", f"Choice on estimation data only: {c['choice']['reason']}."]
+    return lines
+
+
 def _lr_cell(x: Any) -> str:
     """A refit's likelihood ratio for the table: <= 0 (the loss did not decrease) as
     "0 (no improvement)"; the raw value stays in ``report.json``."""
@@ -133,6 +166,7 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
         if ag:
             lines += ["", ("**" + ag["statement"] + "**") if ag["disagree"]
                       else ag["statement"]]
+        lines += _carrier_lines(rep.get("records_carrier"), rep["outputs"])
     lines += ["", "## Parameters (final model)", "",
               "| parameter | value | std dev | relative std % |", "|---|---|---|---|"]
     rel = f.get("parameter_relative_std") or {}

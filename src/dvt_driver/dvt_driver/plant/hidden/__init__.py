@@ -95,7 +95,7 @@ Members are the kinematic members of :mod:`dvt_model.kinematics`: ``sun``, ``rin
 
 Friction on a member acts on that member's speed ``v = a . omega`` (``a`` its linear form in
 ``omega = (omega_sun, omega_carrier3)``) and contributes the generalised torque ``-a F(v)``
-(virtual work). The laws are :mod:`dvt_model.friction`'s (``coulomb``, ``stribeck``,
+(virtual work). The laws are :mod:`dvt_model.laws`' (``coulomb``, ``stribeck``,
 ``windage``: the same code the identifier and the model node use). Both friction laws use
 ``tanh(v / v_eps)`` in place of ``sign(v)``; ``v_eps`` is
 ``friction_velocity`` raised where needed so that an explicit step of the plant stays stable
@@ -105,6 +105,12 @@ Friction on a member acts on that member's speed ``v = a . omega`` (``a`` its li
 
 (break-away ``Fs`` at rest falling to ``Fc`` above ``vs``), which differs from Coulomb by the
 hump at low speed.
+
+Any law of the table (:data:`dvt_model.laws.LAWS`) can act on a member through ``laws``:
+``{member: [{law: NAME, FIELD: value, ...}, ...]}`` with the law's fields (those with a default
+may be left out) within its bounds, the sign smoothed with the member's ``v_eps`` (e.g.
+``laws: {carrier3: [{law: stribeck, Fs: 0.2, vs: 1.5}]}``); a law added to the table reaches
+the plant this way without a change here. Effect name: the law's name.
 
 Presets (``config/*.yaml`` in this package): ``none``, ``coulomb``, ``stribeck``, ``windage``,
 ``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``

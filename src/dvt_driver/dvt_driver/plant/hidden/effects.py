@@ -280,6 +280,10 @@ class HiddenEffects:
         gravity_arm: an undeclared :class:`~dvt_model.load.JointLoad` or ``None``.
         mesh_ripple: :class:`MeshRipple` or ``None``.
         position_friction: member -> :class:`PositionFriction`.
+        laws: member -> speed laws of :data:`dvt_model.laws.LAWS` on it, each ``(law name,
+            its parameters by the law's field names)``; their sign is smoothed with the
+            friction laws' ``v_eps`` (a law of the table reaches the plant without a field
+            of its own here: ``docs/effects.md``).
         damping_scale: the transmission's viscous damping D is scaled by this (1: as the
             parameter set says), >= 0.
         changes: the schedule of :class:`Change` (empty: the plant does not change).
@@ -299,6 +303,7 @@ class HiddenEffects:
     gravity_arm: JointLoad | None = None
     mesh_ripple: MeshRipple | None = None
     position_friction: dict[str, PositionFriction] = field(default_factory=dict)
+    laws: dict[str, tuple[tuple[str, dict[str, float]], ...]] = field(default_factory=dict)
     damping_scale: float = 1.0
     changes: tuple[Change, ...] = ()
     source: str = "<default>"
@@ -307,7 +312,7 @@ class HiddenEffects:
     @property
     def is_clean(self) -> bool:
         """True when no effect is configured."""
-        return not (self.coulomb or self.stribeck or self.windage or self.backlash
+        return not (self.coulomb or self.stribeck or self.windage or self.laws or self.backlash
                     or self.measurement_delay > 0.0 or self.wet_brake or self.has_angle_effects
                     or self.damping_scale != 1.0 or self.changes)
 
@@ -326,6 +331,7 @@ class HiddenEffects:
             names.append("stribeck_friction")
         if self.windage:
             names.append("windage")
+        names.extend(dict.fromkeys(name for terms in self.laws.values() for name, _ in terms))
         if self.backlash is not None:
             names.append("backlash")
         if self.measurement_delay > 0.0:
@@ -354,6 +360,9 @@ class HiddenEffects:
                                for m, s in self.stribeck.items()}
         if self.windage:
             out["windage"] = dict(self.windage)
+        if self.laws:
+            out["laws"] = {m: [{"law": name, **params} for name, params in terms]
+                           for m, terms in self.laws.items()}
         if self.backlash is not None:
             b = self.backlash
             out["backlash"] = {"where": b.where, "gap": b.gap, "stiffness": b.stiffness,
@@ -417,7 +426,8 @@ class HiddenEffects:
         """Members with any friction or windage term, in a stable order."""
         changed = {m for c in self.changes for m in (*c.coulomb, *c.windage)}
         return [m for m in MEMBERS
-                if m in self.coulomb or m in self.stribeck or m in self.windage or m in changed]
+                if m in self.coulomb or m in self.stribeck or m in self.windage or m in self.laws
+                or m in changed]
 
 
 def _plain(obj: Any) -> Any:

@@ -28,6 +28,7 @@ from dvt_driver.plant.hidden.effects import (
     WetBrake,
 )
 from dvt_model.errors import ModelError
+from dvt_model.laws import LAWS
 from dvt_model.load import JointLoad, load_joint_load, parse_joint_load
 from dvt_model.presets import bundled_names, read_yaml_setting
 
@@ -111,7 +112,7 @@ def _member(name: Any, where: str) -> str:
     return str(name)
 
 
-_TOP = ("coulomb", "stribeck", "windage", "backlash", "measurement_delay", "wet_brake",
+_TOP = ("coulomb", "stribeck", "windage", "laws", "backlash", "measurement_delay", "wet_brake",
         "friction_velocity", "gravity_arm", "mesh_ripple", "position_friction",
         "damping_scale", "changes")
 _CHANGE_KEYS = ("at", "ramp", "coulomb", "windage", "damping_scale", "load", "note")
@@ -187,6 +188,41 @@ def parse_change(data: Any, where: str, at: float | None = None) -> Change:
                   load=None if load is None else str(load), note=note)
 
 
+def _parse_laws(data: Any, where: str) -> dict[str, tuple[tuple[str, dict[str, float]], ...]]:
+    """``laws``: member -> list of ``{law: NAME, FIELD: value, ...}`` with NAME a law of
+    :data:`dvt_model.laws.LAWS` and its fields (a field with a default may be left out; the
+    sign's smoothing is the plant's, so no ``eps``), each within the law's bounds.
+
+    Raises:
+        HiddenEffectsError: naming ``where``, the member, the entry, the field and the value.
+    """
+    out: dict[str, tuple[tuple[str, dict[str, float]], ...]] = {}
+    if data is None:
+        return out
+    for m, entries in _map(data, where).items():
+        member = _member(m, where)
+        mw = f"{where}.{member}"
+        if not isinstance(entries, list) or not entries:
+            raise HiddenEffectsError(f"{mw}: expected a non-empty list of laws, got "
+                                     f"{entries!r}")
+        terms: list[tuple[str, dict[str, float]]] = []
+        for i, entry in enumerate(entries):
+            ew = f"{mw}[{i}]"
+            d = _map(entry, ew)
+            name = d.get("law")
+            if name not in LAWS:
+                raise HiddenEffectsError(f"{ew}.law: expected one of {sorted(LAWS)}, got "
+                                         f"{name!r}")
+            law = LAWS[str(name)]
+            _keys(d, ew, ("law", *(p.name for p in law.params if p.default is None)),
+                  tuple(p.name for p in law.params if p.default is not None))
+            terms.append((law.name, {
+                p.name: _num(d.get(p.name, p.default), f"{ew}.{p.name}", lo=p.lower,
+                             lo_open=p.lo_open, hi=p.upper) for p in law.params}))
+        out[member] = tuple(terms)
+    return out
+
+
 def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
     """Validate a parsed YAML mapping (``None`` or ``{}``: no effect) into :class:`HiddenEffects`.
 
@@ -230,6 +266,8 @@ def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
         for m, v in _map(data["windage"], f"{w}windage").items():
             name = _member(m, f"{w}windage")
             windage[name] = _num(v, f"{w}windage.{name}", lo=0.0)
+
+    speed_laws = _parse_laws(data.get("laws"), f"{w}laws")
 
     backlash: Backlash | None = None
     if data.get("backlash") is not None:
@@ -335,7 +373,8 @@ def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
                                      f"{raw_changes!r}")
         changes = [parse_change(c, f"{w}changes[{i}]") for i, c in enumerate(raw_changes)]
 
-    return HiddenEffects(coulomb=coulomb, stribeck=stribeck, windage=windage, backlash=backlash,
+    return HiddenEffects(coulomb=coulomb, stribeck=stribeck, windage=windage, laws=speed_laws,
+                         backlash=backlash,
                          measurement_delay=delay, wet_brake=wet, friction_velocity=fv,
                          gravity_arm=gravity, mesh_ripple=ripple, position_friction=bumps,
                          damping_scale=scale, changes=tuple(changes), source=source)
