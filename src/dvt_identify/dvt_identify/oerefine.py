@@ -1,7 +1,7 @@
 """Output-error refinement of the black-box linear reference (:mod:`dvt_identify.reference`):
 the weighted simulation-error residual over all estimation segments and its analytic Jacobian
-(:class:`_OEProblem`), handed to MINPACK by its triangular factor (:class:`_Compressed`), with
-the stall rule that ends a refinement which stopped paying."""
+(:class:`_OEProblem`), handed to the least-squares solver by its triangular factor
+(:class:`_Compressed`), with the stall rule that ends a refinement which stopped paying."""
 
 from __future__ import annotations
 
@@ -209,11 +209,11 @@ class _OEProblem:
 
 
 class _Compressed(Factored):
-    """The refinement's problem handed to MINPACK by its triangular factor
-    (:class:`~dvt_identify.streamls.Factored`, one block): Levenberg-Marquardt sees what it
-    would see from the full problem (``J^T J``, ``J^T r``, ``|r|`` and the column norms of
-    ``J``), while its own pivoted QR, the cost of an iteration on ``N ny`` rows, runs on
-    ``p + 1``; the Jacobian is formed at every residual evaluation instead of at every
+    """The refinement's problem handed to the solver by its triangular factor
+    (:class:`~dvt_identify.streamls.Factored`, one block): the solver sees what it would see
+    from the full problem (``J^T J``, ``J^T r``, ``|r|`` and the column norms of ``J``), while
+    its own factorisation, the cost of an iteration on ``N ny`` rows, runs on ``p + 1``; the
+    Jacobian is formed at every residual evaluation instead of at every
     accepted one. The Jacobian request also notes the iteration (the stall rule)."""
 
     def __init__(self, prob: _OEProblem) -> None:

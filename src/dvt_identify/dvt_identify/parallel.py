@@ -22,6 +22,7 @@ is a :class:`~dvt_identify.errors.FitError` naming the items it held.
 
 from __future__ import annotations
 
+import gc
 import os
 import pickle
 import threading
@@ -80,26 +81,16 @@ def _read_all(fd: int) -> bytes:
     return b"".join(chunks)
 
 
-def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = None
-             ) -> list[R]:
-    """``[fn(x) for x in items]``, the items shared round robin between this process and
-    forked children (module docstring). ``n_workers`` overrides :func:`workers`.
-
-    Raises:
-        Exception: the first exception ``fn`` raised, in item order.
-        FitError: a child ended without handing back its results.
-    """
-    items = list(items)
-    w = min(workers() if n_workers is None else max(1, int(n_workers)), len(items))
-    if w <= 1:
-        return [fn(x) for x in items]
-    parts = _share(len(items), w)
+def _fork_children(fn: Callable[[T], R], items: Sequence[T], parts: Sequence[list[int]]
+                   ) -> list[tuple[int, int, list[int]]]:
+    """Fork one child per part; each computes ``fn`` on its items and writes the pickled
+    results into its pipe. Returns ``(pid, read end, part)`` per child."""
+    global _in_worker
     children: list[tuple[int, int, list[int]]] = []
-    for part in parts[1:]:
+    for part in parts:
         r, wfd = os.pipe()
         pid = os.fork()
         if pid == 0:  # the child: compute its share, hand it back, leave without cleanup
-            global _in_worker
             _in_worker = True
             os.close(r)
             code = 0
@@ -122,6 +113,31 @@ def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = N
                 os._exit(code)
         os.close(wfd)
         children.append((pid, r, part))
+    return children
+
+
+def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = None
+             ) -> list[R]:
+    """``[fn(x) for x in items]``, the items shared round robin between this process and
+    forked children (module docstring). ``n_workers`` overrides :func:`workers`.
+
+    Raises:
+        Exception: the first exception ``fn`` raised, in item order.
+        FitError: a child ended without handing back its results.
+    """
+    items = list(items)
+    w = min(workers() if n_workers is None else max(1, int(n_workers)), len(items))
+    if w <= 1:
+        return [fn(x) for x in items]
+    parts = _share(len(items), w)
+    # what this process holds is frozen out of the collector before the forks: a child never
+    # finalises an object it inherited (a collected leftover of a C library, e.g. a ROS
+    # context from an earlier test, segfaulted a forked child in its destructor)
+    gc.freeze()
+    try:
+        children = _fork_children(fn, items, parts[1:])
+    finally:
+        gc.unfreeze()
     results: dict[int, tuple[bool, object]] = {}
     try:
         for i in parts[0]:

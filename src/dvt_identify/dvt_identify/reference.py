@@ -19,10 +19,10 @@ which start was kept.
 The start is refined by output error: ``scipy.optimize.least_squares`` minimises the simulation
 error over all estimation segments (each with its own initial state as unknowns, outputs
 weighted by ``1/std(y_j)`` pooled over segments) with an analytic Jacobian from a
-numba-compiled sensitivity recursion (:mod:`dvt_identify.lti`), handed to MINPACK by its
-triangular factor (:class:`dvt_identify.oerefine._Compressed`). The orders' subspace starts are
-refined on both cores. ``A``,
-``B``, ``C`` (and ``D``) are fully parametrised.
+numba-compiled sensitivity recursion (:mod:`dvt_identify.lti`), handed to the trust-region
+reflective solver by its triangular factor (:class:`dvt_identify.oerefine._Compressed`). The
+orders' subspace starts are refined on both cores. ``A``, ``B``, ``C`` (and ``D``) are fully
+parametrised.
 Poles may leave the unit circle slightly (a drive under closed-loop control can need an
 integrator-like pole at 1.0001); a simulation that overflows gives a finite penalty.
 
@@ -426,7 +426,11 @@ class LinearReference:
             raise FitError(f"order {n}: the start cannot be simulated")
         small = _Compressed(prob)
         try:
-            res = least_squares(small.residual, theta0, jac=small.jacobian, method="lm",
+            # TRF, not MINPACK's Levenberg-Marquardt: on this rank-deficient problem scipy
+            # 1.17.1's "lm" proposed a first step that depended on leftover heap memory (the
+            # same inputs replayed after filling freed blocks with 1.0: 13 of 24 runs stepped
+            # elsewhere), so identifications differed from process to process
+            res = least_squares(small.residual, theta0, jac=small.jacobian, method="trf",
                                 x_scale="jac", max_nfev=self.max_nfev, ftol=FTOL)
             stop = "converged" if res.status > 0 else f"max_nfev {self.max_nfev} reached"
         except _StalledError:
