@@ -23,8 +23,8 @@ from dvt_driver.run.foxglove_core import (
     IDENTIFY,
     RESIDUAL_BAND,
     STATE,
-    layout_topics,
 )
+from dvt_driver.run.foxglove_layout import layout_topics
 from dvt_driver.run.foxglove_relay import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL
 from dvt_model.contract import DIAGNOSTICS, IDENTIFY_RESULT, JOINT_STATES, MODEL_RESIDUAL
 

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 from dvt_driver.run import foxglove_core as fc
+from dvt_driver.run import foxglove_layout as fl
 from dvt_model.contract import (
     CURRENTS,
     DIAGNOSTICS,
@@ -213,10 +214,10 @@ def test_bridge_routes_messages_to_channels() -> None:
 # ------------------------------------------------------------------------------- layout
 def test_shipped_layout_is_generated_and_names_only_advertised_channels() -> None:
     text = LAYOUT.read_text()
-    assert text == fc.layout_json(), "regenerate: python -c 'from dvt_driver.run." \
-        "foxglove_core import layout_json; print(layout_json(), end=\"\")' > " + str(LAYOUT)
+    assert text == fl.layout_json(), "regenerate: python -c 'from dvt_driver.run." \
+        "foxglove_layout import layout_json; print(layout_json(), end=\"\")' > " + str(LAYOUT)
     layout = json.loads(text)
-    topics = fc.layout_topics(layout)
+    topics = fl.layout_topics(layout)
     assert topics <= fc.CHANNEL_TOPICS, topics - fc.CHANNEL_TOPICS
     assert {JOINT_STATES, "/dvt/model/joint_states", MODEL_RESIDUAL, fc.RESIDUAL_BAND,
             CURRENTS, fc.STATE, DIAGNOSTICS} <= topics
@@ -226,11 +227,11 @@ def test_shipped_layout_is_generated_and_names_only_advertised_channels() -> Non
 
 def test_layout_topics_rejects_broken_layouts() -> None:
     with pytest.raises(ValueError, match="configById"):
-        fc.layout_topics({})
+        fl.layout_topics({})
     with pytest.raises(ValueError, match="without a config"):
-        fc.layout_topics({"configById": {}, "layout": "Plot!x"})
+        fl.layout_topics({"configById": {}, "layout": "Plot!x"})
     with pytest.raises(ValueError, match="not a topic"):
-        fc.layout_topics({"configById": {"Plot!x": {"paths": [{"value": "nope"}]}},
+        fl.layout_topics({"configById": {"Plot!x": {"paths": [{"value": "nope"}]}},
                           "layout": "Plot!x"})
 
 
