@@ -39,7 +39,9 @@ OUT = ROOT / "docs" / "results"
 def _commit() -> str:
     sha = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, text=True,
                          capture_output=True, check=False).stdout.strip() or "unknown"
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+    # what this script writes itself (the result files, the README's table) is not a change
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":!docs/results", ":!README.md"], cwd=ROOT,
                            text=True, capture_output=True, check=False).stdout.strip()
     return sha + ("-dirty" if dirty else "")
 
