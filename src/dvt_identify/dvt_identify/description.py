@@ -105,7 +105,7 @@ class Preprocess:
         fit_decimate: further decimation of the estimation data for fitting and scoring only;
             figures are computed at the full rate. 0 (``auto`` in the file, the default): each
             segment's factor follows its rate and the model's dynamics
-            (:func:`dvt_identify.fit.fit_decimation`).
+            (:func:`dvt_identify.fitrate.fit_decimation`).
     """
 
     lowpass: dict[str, Any] | None = None

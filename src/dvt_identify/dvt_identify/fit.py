@@ -8,20 +8,19 @@ several starts (equation-error/physics guess plus random perturbations; starts a
 are screened on decimated data and polished only when they beat the first; the first start's
 run and the screens share the two cores).
 
-The start guard: the band gains start from a fit of each band's engagements
-(:meth:`OEFit.band_start`); of the guess and the extra starts the one that simulates best runs
-first; a parameter at a bound that is not its null value (``at_bounds_``, ``suspect_``) or a
-first start whose estimation fit is more than a point below another's triggers more starts
-once (``notes_`` says so and what came of it).
+The start guard (:mod:`dvt_identify.fitstarts`): the band gains start from a fit of each band's
+engagements (:meth:`~dvt_identify.fitstarts.StartPoints.band_start`); of the guess and the extra
+starts the one that simulates best runs first; a parameter at a bound that is not its null
+value (``at_bounds_``, ``suspect_``) or a first start whose estimation fit is more than a point
+below another's triggers more starts once (``notes_`` says so and what came of it).
 
-The fit rate (:func:`fit_segments`, :func:`fit_decimation`) follows each segment's rate and the
-model's dynamics, and the decimation keeps the zero-order hold of the simulation
-(:func:`~dvt_identify.simulation.zoh_decimate`). Measured on ``bags/ident-none-1`` validated on
-an offline second run: the zero-phase decimation by 5 used before biased ``D`` by 9 % and ``M``
-by up to 6 % (validation fit 97.92 / 98.41 %); the hold-consistent one at the same 200 Hz gives
-0.1 % / 0.8 % and 98.93 / 98.75 %, the same as fitting at the full 1 kHz (98.93 / 98.76 %) at a
-third of its time; 125 and 100 Hz lose 0.1-0.3 points and up to 3 % on ``D``.
-"""
+The fit rate (:mod:`dvt_identify.fitrate`: ``fit_segments``, ``fit_decimation``) follows each
+segment's rate and the model's dynamics, and the decimation keeps the zero-order hold of the
+simulation (:func:`~dvt_identify.simulation.zoh_decimate`). Measured on ``bags/ident-none-1``
+validated on an offline second run: the zero-phase decimation by 5 used before biased ``D`` by 9 %
+and ``M`` by up to 6 % (validation fit 97.92 / 98.41 %); the hold-consistent one at the same 200 Hz
+gives 0.1 % / 0.8 % and 98.93 / 98.75 %, the same as fitting at the full 1 kHz (98.93 / 98.76 %) at
+a third of its time; 125 and 100 Hz lose 0.1-0.3 points and up to 3 % on ``D``. """
 
 from __future__ import annotations
 
@@ -38,13 +37,16 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from dvt_identify.data import Segment
-from dvt_identify.effects import BrakeEngagement, BrakeLockup
 from dvt_identify.errors import FitError
+from dvt_identify.fitrate import (
+    MIN_FIT_SAMPLES,
+)
+from dvt_identify.fitstarts import StartPoints, _x0_guess
 from dvt_identify.parallel import fork_map
 from dvt_identify.sensitivity import simulate_sens
 from dvt_identify.simulation import DivergedError, OEModel, zoh_decimate
 from dvt_identify.streamls import Block, Factored, dense, dense_ok
-from dvt_identify.structures import PENALTY, initial_state
+from dvt_identify.structures import PENALTY
 from dvt_identify.uncertainty import sandwich_by_segment, sandwich_covariance
 
 Array = NDArray[np.float64]
@@ -59,112 +61,6 @@ def stderr_progress(msg: str) -> None:
 
 # ---------------------------------------------------------------------------------------------
 # The fit rate
-
-POLE_STEP = 0.2
-"""Largest ``|lambda_max| dt`` of the fit step (the fastest pole of the linear part)."""
-LAG_STEPS = 4.0
-"""Fewest fit steps per effect time constant (a band's engagement lag)."""
-MIN_FIT_SAMPLES = 1000
-"""Fewest samples a segment keeps after the fit decimation."""
-
-
-def fit_decimation(dt: float, fastest_pole: float, time_constants: Sequence[float] = (),
-                   n: int | None = None) -> int:
-    """Decimation factor of one segment for fitting: the largest ``q`` whose fit step
-    ``q dt`` resolves the dynamics, ``|lambda_max| q dt <= POLE_STEP`` and at least
-    ``LAG_STEPS`` steps per effect time constant, keeping ``MIN_FIT_SAMPLES`` samples (``n``:
-    the segment's length). 1 when the data are not faster than that (e.g. 62.5 Hz).
-
-    Args:
-        dt: the segment's sample time [s].
-        fastest_pole: ``max |eig(A)|`` [1/s] of the model's linear part (0: unknown).
-        time_constants: the effects' time constants [s] (non-positive ones are ignored).
-        n: samples of the segment (``None``: no length limit).
-    """
-    if not (dt > 0 and math.isfinite(dt)):
-        return 1
-    step = math.inf
-    if fastest_pole > 0 and math.isfinite(fastest_pole):
-        step = POLE_STEP / fastest_pole
-    taus = [float(t) for t in time_constants if t > 0 and math.isfinite(t)]
-    if taus:
-        step = min(step, min(taus) / LAG_STEPS)
-    if not math.isfinite(step):
-        return 1
-    q = max(1, math.floor(step / dt * (1 + 1e-3)))
-    if n is not None:
-        q = max(1, min(q, n // MIN_FIT_SAMPLES))
-    return q
-
-
-def model_time_scales(model: OEModel, theta: Array | None = None) -> tuple[float, list[float]]:
-    """``max |eig(A)|`` [1/s] (0 if it cannot be computed) and the effects' time constants [s]
-    of ``model`` at ``theta`` (default: the specs' initial values)."""
-    th = model.initial() if theta is None else theta
-    try:
-        A, _, _ = model.structure.matrices(th[: model.n_struct])
-        eig = np.linalg.eigvals(A)
-        pole = float(np.max(np.abs(eig))) if A.size and np.all(np.isfinite(eig)) else 0.0
-    except (np.linalg.LinAlgError, ValueError):
-        pole = 0.0
-    taus = [t for e, p in zip(model.effects, model.effect_params(th), strict=True)
-            for t in e.time_constants(p)]
-    return pole, taus
-
-
-def fit_segments(segments: Sequence[Segment], model: OEModel, fit_decimate: int = 0
-                 ) -> tuple[list[Segment], list[str]]:
-    """The estimation segments at their fit rates, and notes saying what was done.
-
-    ``fit_decimate`` >= 1 decimates every segment by that factor (less where a segment would
-    keep fewer than 10 samples); 0 chooses each segment's factor from its rate and the model's
-    dynamics at its initial values (:func:`fit_decimation`), so recordings of different rates
-    get a similar fit step. The decimation is consistent with the simulation's zero-order hold
-    (:func:`~dvt_identify.simulation.zoh_decimate`)."""
-    pole, taus = model_time_scales(model)
-    out: list[Segment] = []
-    notes: list[str] = []
-    for seg in segments:
-        if fit_decimate >= 1:
-            q = max(1, min(int(fit_decimate), seg.n // 10))
-        else:
-            q = fit_decimation(seg.dt, pole, taus, seg.n)
-        out.append(zoh_decimate(seg, q) if q > 1 else seg)
-        if q > 1:
-            notes.append(f"{seg.name}: estimation data decimated by {q} for fitting and "
-                         f"scoring ({1.0 / seg.dt:g} -> {1.0 / (seg.dt * q):g} Hz"
-                         + (", chosen from the dynamics: fastest pole "
-                            f"{pole:.3g} 1/s, shortest time constant "
-                            f"{min(taus) if taus else math.inf:.3g} s" if fit_decimate < 1
-                            else "") + "); figures at the full rate")
-    rates = sorted({round(1.0 / s.dt, 6) for s in out})
-    if len(rates) > 1:
-        notes.append("segments fitted jointly at different rates: "
-                     + ", ".join(f"{r:g} Hz" for r in rates))
-    return out, notes
-
-
-def _engagement_windows(segments: Sequence[Segment], j: int, pre: float = 0.05,
-                        post: float = 0.4, most: int = 8) -> list[Segment]:
-    """Windows around the rises of input ``j`` through half its largest value (at most
-    ``most``, each from ``pre`` s before to ``post`` s after the rise)."""
-    out: list[Segment] = []
-    for seg in segments:
-        u = seg.u[:, j]
-        top = float(np.max(u)) if u.size else 0.0
-        if not top > 0:
-            continue
-        on = u > 0.5 * top
-        edges = np.flatnonzero(on[1:] & ~on[:-1]) + 1
-        for e in edges:
-            a = max(0, int(e) - round(pre / seg.dt))
-            b = min(seg.n, int(e) + round(post / seg.dt))
-            if b - a >= 5:
-                out.append(seg.rows(a, b))
-            if len(out) >= most:
-                return out
-    return out
-
 
 PREFIT_SAMPLES = 60_000
 """A first start on more samples than this (five minutes at 200 Hz) first converges on the
@@ -186,13 +82,6 @@ def _first_part(segments: Sequence[Segment]) -> list[Segment]:
         out.append(s if s.n <= left else s.rows(0, left))
         left -= out[-1].n
     return out
-
-
-def _x0_guess(seg: Segment, model: OEModel | None = None) -> Array:
-    """Initial-state start (nx,): the mean of the first 3 outputs, mapped to the states by the
-    structure when it has hidden states (:func:`~dvt_identify.structures.initial_state`)."""
-    y0 = np.asarray(seg.y[: min(3, seg.n)].mean(axis=0), dtype=float)
-    return y0 if model is None else initial_state(model.structure, y0)
 
 
 def _clean(r: Array) -> Array:
@@ -265,7 +154,7 @@ class _Problem:
                    sst=sst if sst > 0 else 1.0)
 
 
-class OEFit:
+class OEFit(StartPoints):
     """Output-error fit of an :class:`OEModel` to segments (each with its own initial state).
 
     Args:
@@ -605,166 +494,6 @@ class OEFit:
             if seg.input_names != st.input_names:
                 raise FitError(f"{seg.name}: inputs {list(seg.input_names)} do not match the "
                                f"structure's inputs {list(st.input_names)}")
-
-    def _output_weights(self, segments: Sequence[Segment]) -> Array:
-        """Output scale (ny,): the given weights, else ``std(y_j)`` pooled (1 where it is 0)."""
-        if self.weights is not None:
-            return np.asarray(self.weights, dtype=float)
-        w = np.std(np.vstack([s.y for s in segments]), axis=0)
-        w[w == 0] = 1.0
-        return np.asarray(w, dtype=float)
-
-    def _start_points(self, segments: Sequence[Segment], lo: Array, hi: Array) -> list[Array]:
-        """The guess (with the band gains from their engagements, :meth:`band_start`), every
-        usable extra start, then usable random perturbations of the free parameters
-        (:meth:`_random_starts`) up to ``starts`` in all; each (p,)."""
-        m = self.model
-        if self.theta0 is not None:
-            guess = np.asarray(self.theta0, dtype=float).copy()
-        else:
-            guess = m.initial()
-            guess[: m.n_struct] = m.structure.initial_guess(segments)
-            guess = np.clip(guess, lo, hi)
-            if self.physics_start:
-                # the band fit needs the lock-up dynamics: the structure's prior (physical)
-                # values, not the equation-error ones (a linear fit across lock-ups)
-                prior = np.clip(m.initial(), lo, hi)
-                banded = self.band_start(prior, segments, lo, hi)
-                guess[m.n_struct:] = banded[m.n_struct:]
-        guess = np.clip(guess, lo, hi)
-        rng = np.random.default_rng(self.seed)
-        starts = [guess]
-        for st in self.extra_starts:
-            st = np.clip(np.asarray(st, float), lo, hi)
-            if self._usable(st) and not np.allclose(st, guess):
-                starts.append(st)
-        if len(starts) > 1 and self.theta0 is None:
-            # the first start runs to convergence: take the guess or extra start that
-            # simulates best from where it is (one simulation each; measured: an
-            # equation-error guess across lock-ups can be far off and cost 800 evaluations)
-            x0s = [_x0_guess(sg, self.model) for sg in segments]
-            w = self.weights_
-
-            def cost(th: Array) -> float:
-                xs = ([self.window_x0(th, sg) for sg in segments] if self.init_window > 0
-                      else x0s)
-                r = self._residual(th, segments, xs, w)
-                return float(r @ r)
-            k = int(np.argmin([cost(st) for st in starts]))
-            starts.insert(0, starts.pop(k))
-        starts.extend(self._random_starts(starts[0], lo, hi, self.starts - len(starts), rng))
-        return starts
-
-    def _random_starts(self, guess: Array, lo: Array, hi: Array, count: int,
-                       rng: np.random.Generator) -> list[Array]:
-        """``count`` usable random perturbations of ``guess``: every free parameter (structure
-        and effects) by a factor in ``[1/spread, spread]`` (a zero one by a normal step of the
-        structure's scale), clipped into the bounds; the spread shrinks from 3 towards 1.1
-        while perturbations come out unusable, so exactly ``count`` starts are returned (the
-        last resort: the effects' parameters alone perturbed)."""
-        m = self.model
-        out: list[Array] = []
-        scale = float(np.max(np.abs(guess[: m.n_struct]))) if m.n_struct else 0.0
-        spread = 3.0
-        tries = 0
-        while len(out) < count:
-            tries += 1
-            if tries % 20 == 0:
-                spread = max(1.1, spread ** 0.7)
-            struct = tries < 400
-            st = guess.copy()
-            for i in np.flatnonzero(m.free):
-                if i < m.n_struct and not struct:
-                    continue
-                f = math.exp(rng.uniform(-math.log(spread), math.log(spread)))
-                st[i] = (st[i] * f if st[i] != 0
-                         else rng.normal(0.0, 0.1) * (scale if i < m.n_struct and scale else 1.0)
-                         if i < m.n_struct else st[i])
-            st = np.clip(st, lo, hi)
-            if self._usable(st) or tries >= 600:
-                out.append(st)
-        return out
-
-    def _more_start_points(self, segments: Sequence[Segment], problem: _Problem,
-                           theta_best: Array, guess: Array) -> list[Array]:
-        """Starts run when the optimum is suspect: the best point with every parameter at a
-        (non-null) bound reset to its first start value (or, when that was the same bound,
-        its initial value), then random perturbations of the best point."""
-        m = self.model
-        out: list[Array] = []
-        hit = [name for name, is_null in self.bounds_hit(theta_best) if not is_null]
-        if hit:
-            st = theta_best.copy()
-            for name in hit:
-                i = m.names.index(name)
-                v = float(guess[i])
-                if abs(v - float(theta_best[i])) <= 1e-9 * max(abs(v), 1.0):
-                    v = float(m.specs[i].initial)
-                st[i] = v
-            out.append(np.clip(st, problem.lo, problem.hi))
-        rng = np.random.default_rng(self.seed + 7919)
-        out.extend(self._random_starts(theta_best, problem.lo, problem.hi,
-                                       self.more_starts - len(out), rng))
-        return out
-
-    def band_start(self, theta: Array, segments: Sequence[Segment], lo: Array, hi: Array
-                   ) -> Array:
-        """``theta`` with each band's gain started from its engagements.
-
-        For each brake input with a :class:`~dvt_identify.effects.BrakeEngagement` lag and a
-        :class:`~dvt_identify.effects.BrakeLockup` on the same input, the windows around each
-        rise of the brake input (0.05 s before to 0.4 s after it crosses half its largest
-        value) are simulated from their measured first state with the rest of ``theta``; the
-        gain whose simulated ring deceleration and lock-up best match the measured ones
-        (weighted squared error over a grid of 0.25-4 x the initial gain, then a
-        golden-section polish) replaces the initial value. The lag stays at its initial
-        value: with one or two engagements per band only the ratio gain / lag of the rise is
-        determined (measured: a joint fit wandered to lags of 1e-4..1 s). Returns a copy."""
-        m = self.model
-        th = np.asarray(theta, float).copy()
-        offs = np.cumsum([m.n_struct] + [len(e.params) for e in m.effects])
-        lags = {e.index: int(offs[k]) for k, e in enumerate(m.effects)
-                if isinstance(e, BrakeEngagement) and len(e.params) == 1}
-        gains = {e.index: int(offs[k]) for k, e in enumerate(m.effects)
-                 if isinstance(e, BrakeLockup)}
-        w = self.weights_ if hasattr(self, "weights_") else self._output_weights(segments)
-        for j, gi in gains.items():
-            ti = lags.get(j)
-            if ti is None or not (m.free[gi] and m.free[ti]):
-                continue
-            wins = _engagement_windows(segments, j)
-            if not wins:
-                continue
-
-            def cost(g: float, tau: float, base: Array = th, gi: int = gi, ti: int = ti,
-                     wins: list[Segment] = wins) -> float:
-                t2 = base.copy()
-                t2[gi], t2[ti] = g, tau
-                x0w = [initial_state(m.structure, wn.y[0]) for wn in wins]
-                r = self._residual(t2, wins, x0w, w)
-                return float(r @ r)
-            g0 = float(th[gi]) if th[gi] > 0 else 1.0
-            t_best = float(th[ti]) if th[ti] > 0 else 0.02
-            grid = sorted({float(np.clip(g0 * fg, lo[gi], hi[gi]))
-                           for fg in (0.25, 0.4, 0.6, 0.8, 1.0, 1.25, 1.6, 2.5, 4.0)})
-            costs = [cost(g, t_best) for g in grid]
-            k = int(np.argmin(costs))
-            g_best = grid[k]
-            # golden-section polish between the neighbours of the best grid gain
-            a_, b_ = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-            for _ in range(12):
-                c1, c2 = a_ + 0.382 * (b_ - a_), a_ + 0.618 * (b_ - a_)
-                if cost(c1, t_best) <= cost(c2, t_best):
-                    b_ = c2
-                else:
-                    a_ = c1
-            g_mid = 0.5 * (a_ + b_)
-            if cost(g_mid, t_best) < costs[k]:
-                g_best = g_mid
-            th[gi], th[ti] = g_best, t_best
-            self._say(f"band start {m.names[gi]} {g_best:.4g}, {m.names[ti]} {t_best:.4g} "
-                      f"from {len(wins)} engagement(s)")
-        return th
 
     def _solve(self, problem: _Problem, st: Array, z0: Array, budget: int | None,
                segs: Sequence[Segment]) -> Any:

@@ -74,7 +74,8 @@ from dvt_identify.description import Description
 from dvt_identify.drift import DriftReport, drift_check
 from dvt_identify.effects import SegmentView
 from dvt_identify.errors import DataError, FitError
-from dvt_identify.fit import OEFit, Progress, fit_segments
+from dvt_identify.fit import OEFit, Progress
+from dvt_identify.fitrate import fit_segments
 from dvt_identify.identifiability import Identifiability
 from dvt_identify.linref import ReferenceStage, fit_reference, mapped_starts
 from dvt_identify.metrics import Figures

@@ -13,7 +13,8 @@ from dvt_identify.data import decimate, make_segment
 from dvt_identify.description import load_description, parse_description
 from dvt_identify.effects import SegmentView, make_effect
 from dvt_identify.errors import DescriptionError
-from dvt_identify.fit import OEFit, fit_decimation, fit_segments, model_time_scales
+from dvt_identify.fit import OEFit
+from dvt_identify.fitrate import fit_decimation, fit_segments, model_time_scales
 from dvt_identify.simulation import OEModel, zoh_decimate
 from dvt_identify.structures import MechanicalStructure, StateSpaceStructure
 

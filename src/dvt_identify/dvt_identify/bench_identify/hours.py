@@ -15,7 +15,7 @@ one core per hour of data.
 The identification runs in a child process of its own, so that its peak resident memory is
 its own (``peak_rss_mb``: the largest of that process and of the worker processes it forks).
 It reads the estimation runs one at a time (a run's messages are decoded and dropped before the
-next is read) and keeps each at the fit rate only (:func:`dvt_identify.fit.fit_segments`: the
+next is read) and keeps each at the fit rate only (:func:`dvt_identify.fitrate.fit_segments`: the
 rate the identification would fit at anyway, consistent with the simulation's hold), then runs
 :func:`dvt_identify.loop.identify` (baseline, drift check, augment loop) on them and on the
 full-rate validation run. ``loop_seconds`` is that call (as for the short recordings);
@@ -138,7 +138,7 @@ def identify_runs(est_bags: Sequence[str], val_bags: Sequence[str], description:
 
     from dvt_identify import identifiability
     from dvt_identify.description import load_description
-    from dvt_identify.fit import fit_segments
+    from dvt_identify.fitrate import fit_segments
     from dvt_identify.loop import identify
     from dvt_identify.pipeline import load_segments, loop_config
     from dvt_identify.simloop import warm_up

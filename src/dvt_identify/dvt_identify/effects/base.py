@@ -399,7 +399,7 @@ class Effect:
 
     def time_constants(self, p: Array) -> tuple[float, ...]:
         """Time constants [s] of the effect's own dynamics at ``p`` (the fit step must resolve
-        them, :func:`dvt_identify.fit.fit_decimation`); none by default."""
+        them, :func:`dvt_identify.fitrate.fit_decimation`); none by default."""
         return ()
 
     # -- admissibility -------------------------------------------------------------------
