@@ -27,14 +27,14 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, String
 
 from conftest import Procs, script, wait_for
 from dvt_driver.recording.node import SNAPSHOT_REQUEST, SNAPSHOT_RESULT
 from dvt_model.contract import CURRENT_NAMES, CURRENTS, JOINT_STATES, SPEED_NAMES
-from dvt_model.recording import read_run, typestore
+from dvt_model.recording import read_run
+from dvt_model.recording.messages import BagMessages, decode
 
 pytestmark = pytest.mark.ros
 
@@ -131,11 +131,9 @@ def test_recorder_keeps_every_sample(procs: Procs, rclpy_context: Any, tmp_path:
     np.testing.assert_array_equal(run.stamps_ns, [pub.stamp(i) for i in range(N)])
     np.testing.assert_array_equal(run.speeds[:, 0], np.arange(N, dtype=float))
     np.testing.assert_allclose(run.currents[:, 0], 0.001 * np.arange(N))
-    with Reader(bag) as reader:
-        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
-        msgs: list[Any] = [typestore().deserialize_cdr(raw, c.msgtype)
-                for c, _, raw in reader.messages(connections=conns)]
-        cmds = [c.msgcount for c in reader.connections if c.topic == "/dvt/cmd/test_setpoint"]
+    with BagMessages(bag) as reader:
+        msgs: list[Any] = [decode(m) for m in reader.messages(["/diagnostics"])]
+        cmds = [len(list(reader.messages(["/dvt/cmd/test_setpoint"])))]
     assert [m.status[0].message for m in msgs] == [f"ok {k}" for k in range(5)]
     assert cmds == [5]
 
