@@ -116,6 +116,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "loop": _bench("loop", "--with-identifier", "--json"),
     "model": _bench("model", "--json"),
     "false_effects": false_effects,
+    "compare": _bench("identify", "--compare", "ident-none-1=ident-none-val", "--json"),
 }
 
 
@@ -184,6 +185,22 @@ def _row_false(f: dict[str, Any]) -> tuple[str, str]:
             if isinstance(f.get("upper_bound_95"), (int, float)) else "?")
 
 
+def _row_compare(f: dict[str, Any]) -> tuple[str, str]:
+    run = (_get(f, "runs") or [{}])[0]
+    peer = run.get("peer") or {}
+    if "not_run" in peer:
+        return ("the peer (multiple shooting, CasADi + IPOPT), same data, same run",
+                f"not run: {peer['not_run']}")
+    return ("the peer (multiple shooting, CasADi + IPOPT) on `ident-none-1` -> `-val`, "
+            "same run: ours / peer",
+            f"validation fit {_pair(run.get('validation_fit_percent_free_run'))} % / "
+            f"{_pair(peer.get('validation_fit_percent_free_run'))} %; M off "
+            f"{_n(run.get('M_error_percent'), '.2f')} / {_n(peer.get('M_error_percent'), '.2f')} "
+            f"%, D off {_n(run.get('D_error_percent'), '.2f')} / "
+            f"{_n(peer.get('D_error_percent'), '.2f')} %; {_n(run.get('seconds'), '.1f')} s / "
+            f"{_n(peer.get('fit_seconds'), '.0f')} s")
+
+
 def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
     ident = _get(f, "closed_loop", "identification") or {}
     acc = ident.get("accepted") if isinstance(ident, dict) else None
@@ -198,7 +215,8 @@ def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
 
 ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
     "emps": _row_emps, "identify": _row_identify, "hours": _row_hours, "loop": _row_loop,
-    "model": _row_model, "false_effects": _row_false, "demo": _row_demo}
+    "model": _row_model, "false_effects": _row_false, "compare": _row_compare,
+    "demo": _row_demo}
 
 
 def table() -> str:

@@ -81,6 +81,55 @@ def cart_record() -> Callable[..., Segment]:
     return _cart_record
 
 
+SLIDE_PARAMS = {"M": 2.0, "Fv": 3.0}
+"""The slide's mass [kg] and viscous friction [N s/m] (:func:`slide_record`)."""
+
+
+def _slide_desc() -> Description:
+    """A slide ``M v' = F - Fv v - Fc sign(v)`` with one candidate, Coulomb friction with an
+    offset (``Fc`` [N], offset [N]); priors M 2, Fv 3."""
+    return parse_description({
+        "name": "slide",
+        "inputs": [{"name": "force", "topic": "/s/drive", "field": "effort", "joint": "c"}],
+        "outputs": [{"name": "v", "topic": "/s/joint_states", "field": "velocity",
+                     "joint": "c"}],
+        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
+                      "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
+                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
+                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
+        "candidates": [{"effect": "coulomb_friction", "where": "v", "offset": True,
+                        "eps": 0.01}],
+    }, "slide.yaml")
+
+
+def _slide_record(seed: int, fc: float = 1.0, bias: Any = 0.0, n: int = 4000,
+                  friction: bool = True) -> tuple[Segment, OEModel]:
+    """A record of the slide (:data:`SLIDE_PARAMS`, dry friction ``fc`` [N]) under random
+    force steps every 0.4 s, 5 ms samples, speed noise 0.002 m/s; its drive was ``bias`` [N]
+    (a scalar or one value per sample) more than the logged force. ``friction`` false: the
+    linear slide (M, Fv alone). Returns the record and the model that made it."""
+    desc = _slide_desc()
+    model = OEModel(desc.structure, desc.make_candidates() if friction else [])
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-8.0, 8.0, n // 80 + 1), 80)[:n]
+    t = np.arange(n) * 0.005
+    true_u = (u + np.broadcast_to(bias, u.shape))[:, None]
+    clean = make_segment(f"s{seed}", t, true_u, np.zeros((n, 1)), desc.input_names,
+                         desc.output_names)
+    theta = [SLIDE_PARAMS["M"], SLIDE_PARAMS["Fv"], *([fc, 0.0] if friction else [])]
+    y = model.simulate(np.array(theta), clean, np.zeros(1))
+    y = y + 0.002 * rng.standard_normal(y.shape)
+    return make_segment(f"s{seed}", t, u[:, None], y, desc.input_names,
+                        desc.output_names), model
+
+
+@pytest.fixture(scope="session")
+def slide_record() -> Callable[..., tuple[Segment, OEModel]]:
+    """``slide_record(seed, fc=1.0, bias=0.0, n=4000, friction=True)``: a record of the slide
+    with dry friction and the model that made it (the toy of the records' disagreement)."""
+    return _slide_record
+
+
 @pytest.fixture
 def traced_pipeline(monkeypatch: pytest.MonkeyPatch, tmp_path: Path
                     ) -> tuple[list[str], dict[str, float], Path]:

@@ -8,60 +8,24 @@ import numpy as np
 import pytest
 
 from dvt_identify.carrier import choose_carrier, offer_carrier, window_bias
-from dvt_identify.data import make_segment
-from dvt_identify.description import parse_description
 from dvt_identify.disagree import compare_records
 from dvt_identify.fit import OEFit
 from dvt_identify.series import evaluate_test
-from dvt_identify.simulation import OEModel
 
 W = 200
 """Initial-state window [samples] (1 s at 5 ms)."""
-TRUE = np.array([2.0, 3.0, 1.0, 0.0])
-"""M [kg], Fv [N s/m], Fc [N], offset [N] of the simulated slide."""
-
-
-def _desc():
-    return parse_description({
-        "name": "slide",
-        "inputs": [{"name": "force", "topic": "/s/drive", "field": "effort", "joint": "c"}],
-        "outputs": [{"name": "v", "topic": "/s/joint_states", "field": "velocity",
-                     "joint": "c"}],
-        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                      "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
-                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
-        "candidates": [{"effect": "coulomb_friction", "where": "v", "offset": True,
-                        "eps": 0.01}],
-    }, "slide.yaml")
-
-
-def _record(seed: int, bias, n: int = 4000, friction: bool = True):
-    """A record of the slide whose drive was ``bias`` [N] more than the logged force (a scalar
-    or one value per sample); ``friction`` false: the linear slide (``M``, ``Fv`` alone)."""
-    desc = _desc()
-    model = OEModel(desc.structure, desc.make_candidates() if friction else [])
-    rng = np.random.default_rng(seed)
-    u = np.repeat(rng.uniform(-8.0, 8.0, n // 80 + 1), 80)[:n]
-    t = np.arange(n) * 0.005
-    true_u = (u + np.broadcast_to(bias, u.shape))[:, None]
-    clean = make_segment(f"s{seed}", t, true_u, np.zeros((n, 1)), desc.input_names,
-                         desc.output_names)
-    y = model.simulate(TRUE if friction else TRUE[:2], clean, np.zeros(1))
-    y = y + 0.002 * rng.standard_normal(y.shape)
-    return make_segment(f"s{seed}", t, u[:, None], y, desc.input_names, desc.output_names), model
 
 
 @pytest.fixture(scope="module")
-def fitted():
-    est, model = _record(1, 0.0)
+def fitted(slide_record):
+    est, model = slide_record(1)
     fit = OEFit(model, starts=1, theta0=np.array([2.0, 3.0, 1.0, 0.0]), init_window=W)
     return est, fit.fit([est])
 
 
-def test_a_constant_test_bias_is_recovered_from_the_window_and_cuts_the_test_error(fitted):
+def test_a_constant_test_bias_is_recovered_from_the_window_and_cuts_the_test_error(fitted, slide_record):
     est, fit = fitted
-    test, _ = _record(2, 0.5)
+    test, _ = slide_record(2, bias=0.5)
     plain = evaluate_test(fit, fit, [test], W).final
     assert compare_records(fit, [est], [test], "N").disagree
     offer = offer_carrier(fit, [est], [test], W, plain, "N")
@@ -77,9 +41,9 @@ def test_a_constant_test_bias_is_recovered_from_the_window_and_cuts_the_test_err
     assert [r["kind"] for r in rep["test"]] == ["none", "constant", "direction"]
 
 
-def test_without_a_bias_the_choice_is_none_and_the_test_figure_unchanged(fitted):
+def test_without_a_bias_the_choice_is_none_and_the_test_figure_unchanged(fitted, slide_record):
     est, fit = fitted
-    test, _ = _record(3, 0.0)
+    test, _ = slide_record(3)
     plain = evaluate_test(fit, fit, [test], W).final
     offer = offer_carrier(fit, [est], [test], W, plain, "N")
     assert offer.choice.chosen == "none", offer.choice.reason
@@ -88,21 +52,21 @@ def test_without_a_bias_the_choice_is_none_and_the_test_figure_unchanged(fitted)
     assert abs(const.biases[0].value[0]) < 3 * const.biases[0].std[0]
 
 
-def test_the_bias_comes_from_the_window_alone(fitted):
+def test_the_bias_comes_from_the_window_alone(fitted, slide_record):
     _, fit = fitted
-    test, _ = _record(2, 0.5)
-    other, _ = _record(2, np.r_[np.full(W, 0.5), np.full(4000 - W, -3.0)])
+    test, _ = slide_record(2, bias=0.5)
+    other, _ = slide_record(2, bias=np.r_[np.full(W, 0.5), np.full(4000 - W, -3.0)])
     for kind in ("constant", "direction"):
         a, b = window_bias(fit, test, W, kind), window_bias(fit, other, W, kind)
         np.testing.assert_array_equal(a.value, b.value)
         np.testing.assert_array_equal(a.x0, b.x0)
 
 
-def test_a_bias_that_changes_within_the_estimation_record_gets_a_carrier_chosen():
+def test_a_bias_that_changes_within_the_estimation_record_gets_a_carrier_chosen(slide_record):
     # the linear slide: a friction in the model would absorb part of the changing bias
     n = 4000
     steps = np.repeat([0.0, 0.6, -0.4, 0.3, -0.5], n // 5)
-    est, model = _record(4, steps, n, friction=False)
+    est, model = slide_record(4, bias=steps, n=n, friction=False)
     fit = OEFit(model, starts=1, theta0=np.array([2.0, 3.0]), init_window=W)
     fit.fit([est])
     choice = choose_carrier(fit, [est], W, blocks=5)
