@@ -32,6 +32,9 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 
 RATE_HZ = 50.0
 SIM_RATE = 500
+DISCOVERY_S = 15.0
+"""Bound on the bridge's DDS subscriptions matching the chain's publishers [s] (measured
+0-2.6 s; the SPDP announcements repeat, a late match takes a few periods)."""
 
 
 def _free_port() -> int:
@@ -165,6 +168,11 @@ def test_foxglove_bridge_live(procs: Procs, rclpy_context: Any, tmp_path: Path) 
             assert c["encoding"] == "json" and c["schemaEncoding"] == "jsonschema", c
             assert json.loads(c["schema"])["type"] == "object", c
 
+        # the window opens at the first forwarded sample: the bridge is up once its
+        # subscriptions exist, and DDS matches them with the publishers a moment later
+        # (measured: up to 2.6 s after the channels were advertised, on a quiet machine)
+        wait_for(lambda: bool(client.got(JOINT_STATES)), DISCOVERY_S,
+                 "the first forwarded joint state (the bridge's DDS subscriptions matched)")
         window = 5.0
         t_end = time.monotonic() + window
         while time.monotonic() < t_end:
