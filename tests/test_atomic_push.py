@@ -38,7 +38,7 @@ from sensor_msgs.msg import JointState
 
 from conftest import wait_for
 from dvt_model import rosutil
-from dvt_model.config import build_predictor
+from dvt_model.config import build_predictor, defaults
 from dvt_model.contract import (
     CURRENT_NAMES,
     CURRENTS,
@@ -190,7 +190,7 @@ class _Probe:
                         "the model node's topics")
         n = len(self.events)
         while len(self.events) == n:  # a change published before the match may be lost
-            res = self.set_plain("gap_reset", 0.5)
+            res = self.set_plain("gap_reset", defaults()["gap_reset"])
             assert res.successful, res.reason
             self.spin_for(0.3)
         return int(self.status_after(time.time())[2]["resets"])

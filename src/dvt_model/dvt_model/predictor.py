@@ -12,8 +12,11 @@ Initialisation and re-anchoring:
   the ring is still, else at zero).
 - ``mode="simulate"`` (default): afterwards the model runs free on the measured inputs, so the
   residual is the output-error (simulation) residual that the identifier fits and judges. It
-  re-anchors only when the stream restarts: a stamp that goes backwards or a gap longer than
-  ``gap_reset`` seconds (a new recording, a controller reset).
+  re-anchors only when the stream restarts or loses its inputs: a stamp that goes backwards or
+  a gap longer than ``gap_reset`` seconds and than :data:`GAP_PERIODS` times the previous
+  stamp step (a new recording, a controller reset, samples lost in transport: the inputs held
+  across a lost burst would leave the free run off for good; the second bound keeps a stream
+  slower than ``gap_reset``, e.g. 62.5 Hz, running free after its first step).
 - ``mode="reanchor"``: additionally re-anchors every ``reanchor_period`` seconds, so the
   residual shows the model's short-horizon prediction error and never drifts; useful to watch
   a live machine for hours.
@@ -54,6 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from dvt_model.backlash import OutputMap, dead_zone
 from dvt_model.brake import band_torques, capacity_step
+from dvt_model.contract import GAP_RESET_S
 from dvt_model.errors import DvtModelError, SimulationError
 from dvt_model.hybrid import HybridModel, HybridState
 from dvt_model.linear import LinearModel
@@ -61,6 +65,9 @@ from dvt_model.params import BrakeParams
 
 Array = NDArray[np.float64]
 Mode = Literal["simulate", "reanchor"]
+GAP_PERIODS = 2.5
+"""A stamp step longer than ``gap_reset`` re-anchors only if it is also longer than this many
+times the previous step: a lost sample or more at the stream's own rate."""
 
 SUN_SPEED_LIMIT = 2400.0 * 2.0 * np.pi / 60.0
 """The machine's safe maximum sun speed, 2400 rpm, in rad/s (the driver refuses faster
@@ -105,7 +112,7 @@ class Predictor:
 
     def __init__(self, model: HybridModel | LinearModel, brake: BrakeParams,
                  mode: Mode = "simulate", reanchor_period: float = 1.0,
-                 gap_reset: float = 0.5, rms_window: int = 1000,
+                 gap_reset: float = GAP_RESET_S, rms_window: int = 1000,
                  output_delay: float = 0.0, output_gain: tuple[float, float] = (0.0, 0.0),
                  input_dead_zone: ArrayLike = (0.0, 0.0, 0.0, 0.0),
                  output_maps: tuple[OutputMap | None, OutputMap | None] = (None, None)
@@ -139,6 +146,7 @@ class Predictor:
         self._sq_pos: deque[Array] = deque(maxlen=max(1, rms_window))
         self._cap = np.zeros(3)
         self._last_stamp: float | None = None
+        self._last_step = 0.0  # the previous forward stamp step [s] (0: none yet)
         self._last_inputs: tuple[float, Array] = (0.0, np.zeros(3))
         self._anchor_stamp = 0.0
         self._sq: deque[Array] = deque(maxlen=max(1, rms_window))
@@ -260,7 +268,9 @@ class Predictor:
                 th_meas = None
         anchored = False
         last = self._last_stamp
-        if last is None or stamp <= last or stamp - last > self.gap_reset or (
+        step_s = 0.0 if last is None else stamp - last
+        if last is None or stamp <= last or (
+                step_s > self.gap_reset and step_s > GAP_PERIODS * self._last_step) or (
                 self.mode == "reanchor" and stamp - self._anchor_stamp >= self.reanchor_period):
             self._anchor(stamp, meas, ib, th_meas)
             anchored = True
@@ -307,6 +317,8 @@ class Predictor:
             predicted, position = delayed[:2].copy(), delayed[2:].copy()
         predicted = predicted * self.output_gain
         self._last_stamp = stamp
+        if step_s > 0.0:
+            self._last_step = step_s
         self._last_inputs = (float(i_motor), ib)
         residual = meas - predicted
         self._sq.append(residual**2)

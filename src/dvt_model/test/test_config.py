@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dvt_model.config import build_predictor, check_parameters, defaults, resolve
-from dvt_model.contract import MAX_EFFECT_TERMS, MODEL_PARAMETERS
+from dvt_model.contract import GAP_RESET_S, MAX_EFFECT_TERMS, MODEL_PARAMETERS
 from dvt_model.errors import DvtModelError
 from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel
@@ -158,7 +158,7 @@ def test_defaults_build_the_physical_hybrid_model():
     predictor, desc = build_predictor({})
     assert isinstance(predictor.model, HybridModel)
     assert desc == "hybrid physics 'physical'"
-    assert predictor.mode == "simulate" and predictor.gap_reset == 0.5
+    assert predictor.mode == "simulate" and predictor.gap_reset == GAP_RESET_S
 
 
 def test_overrides_reach_the_model():

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
+from dvt_model.contract import GAP_RESET_S
 from dvt_model.errors import SimulationError
 from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel
 from dvt_model.params import load_parameters
-from dvt_model.predictor import OMEGA_GUARD, Predictor
+from dvt_model.predictor import GAP_PERIODS, OMEGA_GUARD, Predictor
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +42,31 @@ def test_reanchor_mode_and_gap(params):
     assert p.anchors == 3
     p.update(t[-1] + 5.0, 0.0, (0, 0, 0), (0.0, 0.0))  # gap > gap_reset re-anchors
     assert p.anchors == 4
+
+
+def test_a_burst_of_lost_samples_reanchors_and_a_lost_sample_does_not(params):
+    """Lost samples (transport) at 1 kHz: a gap beyond ``gap_reset`` re-anchors (the held
+    inputs would leave the free run off), a gap within it is run through."""
+    t, im, ib, r = _truth(params, 2000)
+    keep = np.ones(len(t), bool)
+    keep[500:503] = False  # 4 ms step: run through
+    lost = 1200, 1200 + round(2 * GAP_RESET_S / 1e-3)  # twice gap_reset: re-anchor
+    keep[lost[0]:lost[1]] = False
+    p = Predictor(HybridModel.from_params(params), params.brake)
+    out = {k: p.update(t[k], im[k], ib[k], r.omega[k]) for k in np.flatnonzero(keep)}
+    assert [k for k, o in out.items() if o.anchored] == [0, lost[1]]
+
+
+def test_a_stream_slower_than_gap_reset_runs_free_after_its_first_step(params):
+    """62.5 Hz (16 ms > ``gap_reset``): the first step anchors (no previous step to compare),
+    then the stream runs free; a lost sample (32 ms) is run through, two (48 ms) re-anchor."""
+    step = 16
+    assert step * 1e-3 > GAP_RESET_S and 2 * step < GAP_PERIODS * step < 3 * step
+    t, im, ib, r = _truth(params, 2000)
+    idx = [k for k in range(0, 2000, step) if k not in (800, 1200, 1200 + step)]
+    p = Predictor(HybridModel.from_params(params), params.brake)
+    anchored = [k for k in idx if p.update(t[k], im[k], ib[k], r.omega[k]).anchored]
+    assert anchored == [0, step, 1200 + 2 * step]
 
 
 def test_linear_model_with_wrong_A_has_residual(params):
@@ -142,7 +168,7 @@ def test_linear_model_integrates_angles(params):
     from dvt_model.linear import LinearModel
     A = np.array([[-1.0, 0.0], [0.0, -1.0]])
     B = np.zeros((2, 2))
-    p = Predictor(LinearModel(A, B), params.brake)
+    p = Predictor(LinearModel(A, B), params.brake, gap_reset=0.05)  # one 10-ms step
     p.update(0.0, 0.0, (0, 0, 0), (2.0, 1.0), (0.0, 0.0))
     out = p.update(0.01, 0.0, (0, 0, 0), (2.0, 1.0), (0.02, 0.01))
     assert out.predicted_position[0] == pytest.approx(2.0 * (1 - np.exp(-0.01)), rel=1e-3)
