@@ -472,7 +472,9 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
     raised an alarm (a step in the measured sun-shaft speed), the service clears the reference
     and the latched alarm (the status goes from WARN/testing to OK/learning at once), the next
     samples teach it a new reference (no anchor), the reset is logged with the text
-    ``dvt-bench loop`` looks for, and a node whose detector is off refuses with the reason."""
+    ``dvt-bench loop`` looks for, and a node whose detector is off refuses with the reason.
+    The recording lacks 20 ms of samples at 2 s (lost in transport): the model re-anchors there
+    (``gap_reanchor``), but the detector keeps its reference (one anchor restart: the start)."""
     from dvt_driver.system.bench_loop import _rearm_time
     from dvt_model.contract import RESET_DETECTOR_LOG, model_reset_detector_service
     from dvt_model.node import DETECTOR_STATUS
@@ -487,7 +489,9 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
     speeds = r.omega + np.random.default_rng(3).normal(0.0, NOISE, r.omega.shape)
     speeds[t >= step_at, 0] += step
     stamps = (1_700_000_000 * 10**9 + np.round(t * 1e9)).astype(np.int64)
-    bag = write_run(tmp_path / "run", stamps, speeds, np.column_stack([im, ib]))
+    kept = (t < 2.0) | (t >= 2.02)  # 20 ms lost: more than gap_reanchor, less than gap_reset
+    bag = write_run(tmp_path / "run", stamps[kept], speeds[kept],
+                    np.column_stack([im, ib])[kept])
 
     listener = _Listener(rclpy_context)
     statuses: list[tuple[int, dict[str, str]]] = []
@@ -525,6 +529,7 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
                      15.0, "the alarm (WARN)")
     alarms = warn["alarms"]
     assert warn["requested_resets"] == "0", warn
+    assert warn["anchor_restarts"] == "1", warn  # the start only: the lost 20 ms are no restart
 
     answer = _call_trigger(listener, model_reset_detector_service())
     assert answer.success, answer.message

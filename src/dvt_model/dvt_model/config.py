@@ -91,7 +91,7 @@ class ModelConfig:
         brake: its band data with the ``band_gain``/``band_time_constant`` overrides applied.
         linear: ``(A (2, 2) [1/s], B (2, 2) or (2, 4))`` of the linear model, or ``None``.
         terms: the effect terms.
-        mode, reanchor_period [s], gap_reset [s]: the predictor's settings.
+        mode, reanchor_period [s], gap_reset [s], gap_reanchor [s]: the predictor's settings.
         changes: names of the overrides applied to the parameter set.
         load: the joint load on carrier 3 (``load``), or ``None``.
         detector: the change detector's settings, or ``None`` (``detector.enabled`` false).
@@ -105,6 +105,7 @@ class ModelConfig:
     mode: str
     reanchor_period: float
     gap_reset: float
+    gap_reanchor: float
     changes: tuple[str, ...]
     load: JointLoad | None = None
     detector: DetectorSetup | None = None
@@ -297,7 +298,8 @@ def resolve(values: Mapping[str, Any]) -> ModelConfig:
                          "and B, or set load to none)")
     return ModelConfig(params=params, rigid=rigid, brake=brake, linear=linear, terms=terms,
                        mode=str(v["mode"]), reanchor_period=float(v["reanchor_period"]),
-                       gap_reset=float(v["gap_reset"]), changes=tuple(sorted(changes)),
+                       gap_reset=float(v["gap_reset"]),
+                       gap_reanchor=float(v["gap_reanchor"]), changes=tuple(sorted(changes)),
                        load=load, detector=detector)
 
 
@@ -354,7 +356,8 @@ def build_predictor(values: Mapping[str, Any]) -> tuple[Predictor, str]:
                 ([f"dead zone on {', '.join(zones)}"] if zones else []) + plays)
     predictor = Predictor(model, cfg.brake, mode="reanchor" if cfg.mode == "reanchor"
                           else "simulate", reanchor_period=cfg.reanchor_period,
-                          gap_reset=cfg.gap_reset, output_delay=terms.delay,
+                          gap_reset=cfg.gap_reset,
+                          gap_reanchor=cfg.gap_reanchor, output_delay=terms.delay,
                           output_gain=terms.gains, input_dead_zone=terms.dead_zones,
                           output_maps=terms.output_maps())
     return predictor, desc

@@ -107,9 +107,13 @@ class QosSpec:
     durability: Literal["volatile", "transient_local"] = "volatile"
 
 
-GAP_RESET_S = 0.005
-"""Default stamp gap [s] beyond which the model node's predictor re-anchors (``gap_reset``).
-A burst of lost samples leaves the free run on held inputs. Measured on the ident-backlash
+GAP_RESET_S = 0.5
+"""Default stamp gap [s] beyond which the model node's stream has restarted (``gap_reset``):
+the model re-anchors and the change detector learns anew."""
+GAP_REANCHOR_S = 0.005
+"""Default stamp gap [s] of lost samples beyond which the model re-anchors but the detector
+keeps its reference (``gap_reanchor``). A burst of lost samples leaves the free run on held
+inputs. Measured on the ident-backlash
 validation run (1 kHz, 12 burst positions each, ``docs/reference.md``): 5 ms of lost samples
 left the sun's residual RMS over the rest of an 8-s slice unchanged (0.0 %), 10 ms raised it by
 up to 3.5 %, 20 ms up to 1.5 times, 50-100 ms 2.5-4 times. A step must also exceed 2.5 times
@@ -647,8 +651,12 @@ MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
     NodeParam("reanchor_period", "double", "s", "seconds between re-anchors in reanchor mode",
               1.0, lo=0.001, hi=3600.0),
     NodeParam("gap_reset", "double", "s",
+              "a stamp gap longer than this is a stream restart: the model re-anchors and the "
+              "change detector learns anew", GAP_RESET_S, lo=0.001, hi=3600.0),
+    NodeParam("gap_reanchor", "double", "s",
               "a stamp gap longer than this and than 2.5 times the previous step (lost "
-              "samples: the inputs are unknown) re-anchors the model", GAP_RESET_S,
+              "samples: the inputs are unknown) re-anchors the model; the change detector "
+              "keeps its reference and skips detector.settle_s", GAP_REANCHOR_S,
               lo=0.001, hi=3600.0),
     NodeParam("load", "string", "-",
               "joint load on carrier 3 (dvt_model.load): none, arm (the thesis's 71 in, 200 lb "

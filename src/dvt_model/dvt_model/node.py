@@ -60,7 +60,10 @@ simulated plant); its 10-ms mean is well behaved. The alarm's ``change_s`` and `
 block starts (resolution ``block_s``). After every anchor of the model to the measurement in
 simulate mode (the first sample, a stream restart, a guard re-anchor) the detector waits
 ``detector.settle_s`` (the anchor's error decays with the transmission's time constants) and
-then learns anew (``anchor_restarts`` in its status). On an alarm the node publishes the
+then learns anew (``anchor_restarts`` in its status). After a re-anchor on lost samples (a
+gap beyond ``gap_reanchor`` but within ``gap_reset``: the same stream and model, inputs
+unknown for a moment) it only waits ``detector.settle_s`` and keeps its reference and CUSUMs
+(``gap_reanchors`` in the node's status). On an alarm the node publishes the
 alarm's JSON
 (:meth:`~dvt_model.detect.Alarm.to_json`: ``change_s`` the estimated change time, ``stamp_s``
 the detection, ``name``, ``direction``, ``shift`` [rad/s]) on ``/dvt/model/change``
@@ -377,6 +380,8 @@ class ModelNode(Node):
         self.bad_messages = 0
         self.published = 0
         self._guard_before = 0  # guard re-anchors of the predictors replaced so far
+        self._gap_before = 0  # re-anchors on lost samples of the predictors replaced so far
+        self._gap_seen = 0  # the present predictor's gap_anchors the detector has seen
         self._staged: ModelTransaction | None = None  # accepted by _on_set, applied next
         self.pairer: LivePairer[bytes] = LivePairer(slots=2, max_pending=2000)
         self._speeds = JointStateReader(SPEED_NAMES, _VELOCITY, positions=True)
@@ -451,6 +456,8 @@ class ModelNode(Node):
         if tx is None:
             return
         self._guard_before += self.predictor.guard_reanchors
+        self._gap_before += self.predictor.gap_anchors
+        self._gap_seen = 0
         self.predictor, self.model_desc = tx.predictor, tx.description
         # a push or rollback: learn the new model's residual (the last alarm's WARN hold stays)
         self._reset_detector("model")
@@ -498,7 +505,12 @@ class ModelNode(Node):
             t = stamp_ns * 1e-9
             self._last_stamp = t
             if pred.anchored and self.predictor.mode == "simulate":
-                self._restart_detector(t)
+                if self.predictor.gap_anchors != self._gap_seen:  # lost samples: same stream
+                    self._gap_seen = self.predictor.gap_anchors
+                    self.blocks.clear()
+                    self._settle_until = t + self.settle_s
+                else:
+                    self._restart_detector(t)
             if t < self._settle_until:
                 return
             block = self.blocks.add(t, residual)
@@ -610,6 +622,7 @@ class ModelNode(Node):
             "published": self.published,
             "anchors": self.predictor.anchors,
             "guard_reanchors": guard,
+            "gap_reanchors": self._gap_before + self.predictor.gap_anchors,
             "residual_rms_sun_shaft": f"{rms[0]:.6g}",
             "residual_rms_carrier3": f"{rms[1]:.6g}",
             **self._position_rms(),

@@ -12,11 +12,12 @@ Initialisation and re-anchoring:
   the ring is still, else at zero).
 - ``mode="simulate"`` (default): afterwards the model runs free on the measured inputs, so the
   residual is the output-error (simulation) residual that the identifier fits and judges. It
-  re-anchors only when the stream restarts or loses its inputs: a stamp that goes backwards or
-  a gap longer than ``gap_reset`` seconds and than :data:`GAP_PERIODS` times the previous
-  stamp step (a new recording, a controller reset, samples lost in transport: the inputs held
-  across a lost burst would leave the free run off for good; the second bound keeps a stream
-  slower than ``gap_reset``, e.g. 62.5 Hz, running free after its first step).
+  re-anchors only when the stream restarts (a stamp that goes backwards or a gap longer than
+  ``gap_reset`` seconds: a new recording, a controller reset; :attr:`Prediction.restarted`)
+  or loses its inputs: a gap longer than ``gap_reanchor`` seconds and than
+  :data:`GAP_PERIODS` times the previous stamp step (samples lost in transport: the inputs
+  held across a lost burst would leave the free run off for good; the second bound keeps a
+  stream slower than ``gap_reanchor``, e.g. 62.5 Hz, running free after its first step).
 - ``mode="reanchor"``: additionally re-anchors every ``reanchor_period`` seconds, so the
   residual shows the model's short-horizon prediction error and never drifts; useful to watch
   a live machine for hours.
@@ -57,7 +58,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from dvt_model.backlash import OutputMap, dead_zone
 from dvt_model.brake import band_torques, capacity_step
-from dvt_model.contract import GAP_RESET_S
+from dvt_model.contract import GAP_REANCHOR_S, GAP_RESET_S
 from dvt_model.errors import DvtModelError, SimulationError
 from dvt_model.hybrid import HybridModel, HybridState
 from dvt_model.linear import LinearModel
@@ -81,6 +82,7 @@ state beyond it has diverged and is re-anchored (see the module docstring)."""
 @dataclass(frozen=True)
 class Prediction:
     """Prediction for one sample: speeds and residual [rad/s], shape (2,) each; gear state;
+    whether the model was anchored at this sample and whether that was a stream (re)start;
     predicted angles [rad] (2,) always, and the angle residual [rad] (2,) when the sample
     carried measured angles (else ``None``)."""
 
@@ -89,6 +91,7 @@ class Prediction:
     residual: Array
     gear: int
     anchored: bool
+    restarted: bool = False
     predicted_position: Array = field(default_factory=lambda: np.zeros(2))
     position_residual: Array | None = None
 
@@ -102,6 +105,8 @@ class Predictor:
         mode: ``"simulate"`` or ``"reanchor"`` (see module docstring).
         reanchor_period: seconds between re-anchors in ``"reanchor"`` mode.
         gap_reset: a stamp gap [s] longer than this re-anchors (stream restart).
+        gap_reanchor: a stamp gap [s] longer than this and than :data:`GAP_PERIODS` times
+            the previous step re-anchors (samples lost; not a restart).
         rms_window: number of samples in the running residual RMS.
         output_delay: the outputs' measurement delay [s] (whole samples).
         output_gain: each output's relative scale error (output scaled by ``1 + gain``).
@@ -112,7 +117,8 @@ class Predictor:
 
     def __init__(self, model: HybridModel | LinearModel, brake: BrakeParams,
                  mode: Mode = "simulate", reanchor_period: float = 1.0,
-                 gap_reset: float = GAP_RESET_S, rms_window: int = 1000,
+                 gap_reset: float = GAP_RESET_S, gap_reanchor: float = GAP_REANCHOR_S,
+                 rms_window: int = 1000,
                  output_delay: float = 0.0, output_gain: tuple[float, float] = (0.0, 0.0),
                  input_dead_zone: ArrayLike = (0.0, 0.0, 0.0, 0.0),
                  output_maps: tuple[OutputMap | None, OutputMap | None] = (None, None)
@@ -126,6 +132,9 @@ class Predictor:
         self.mode: Mode = mode
         self.reanchor_period = reanchor_period
         self.gap_reset = gap_reset
+        self.gap_reanchor = gap_reanchor
+        self.gap_anchors = 0
+        """Re-anchors after lost samples (a gap beyond ``gap_reanchor``, not a restart)."""
         self.output_delay = float(output_delay)
         self.output_gain = np.asarray(output_gain, dtype=float) + 1.0
         zones = np.asarray(input_dead_zone, dtype=float).reshape(-1)
@@ -269,13 +278,16 @@ class Predictor:
         anchored = False
         last = self._last_stamp
         step_s = 0.0 if last is None else stamp - last
-        if last is None or stamp <= last or (
-                step_s > self.gap_reset and step_s > GAP_PERIODS * self._last_step) or (
+        restarted = last is None or stamp <= last or step_s > self.gap_reset
+        lost = (not restarted and step_s > self.gap_reanchor
+                and step_s > GAP_PERIODS * self._last_step)
+        if restarted or lost or (
                 self.mode == "reanchor" and stamp - self._anchor_stamp >= self.reanchor_period):
             self._anchor(stamp, meas, ib, th_meas)
             anchored = True
+            self.gap_anchors += lost
         else:
-            if not self._advance(stamp - last):
+            if last is None or not self._advance(stamp - last):  # (last is set here)
                 self._anchor(stamp, meas, ib, th_meas)
                 self.guard_reanchors += 1
                 anchored = True
@@ -328,7 +340,8 @@ class Predictor:
             self._sq_pos.append(pos_res**2)
         self.samples += 1
         return Prediction(stamp=stamp, predicted=predicted, residual=residual, gear=gear,
-                          anchored=anchored, predicted_position=position,
+                          anchored=anchored, restarted=restarted,
+                          predicted_position=position,
                           position_residual=pos_res)
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dvt_model.config import build_predictor, check_parameters, defaults, resolve
-from dvt_model.contract import GAP_RESET_S, MAX_EFFECT_TERMS, MODEL_PARAMETERS
+from dvt_model.contract import GAP_REANCHOR_S, GAP_RESET_S, MAX_EFFECT_TERMS, MODEL_PARAMETERS
 from dvt_model.errors import DvtModelError
 from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel
@@ -93,6 +93,8 @@ BAD = [
     ("reanchor_period", {"reanchor_period": 0.0}, "reanchor_period"),
     ("gap_reset", {"gap_reset": -1.0}, "gap_reset"),
     ("gap_reset", {"gap_reset": [0.5]}, "gap_reset"),
+    ("gap_reanchor", {"gap_reanchor": 0.0}, "gap_reanchor"),
+    ("gap_reanchor", {"gap_reanchor": "soon"}, "gap_reanchor"),
     ("load", {"load": "piano"}, "unknown load"),
     ("load", {"load": "/no/such/load.yaml"}, "cannot read"),
     ("load", {"load": 3.0}, "load"),
@@ -159,6 +161,7 @@ def test_defaults_build_the_physical_hybrid_model():
     assert isinstance(predictor.model, HybridModel)
     assert desc == "hybrid physics 'physical'"
     assert predictor.mode == "simulate" and predictor.gap_reset == GAP_RESET_S
+    assert predictor.gap_reanchor == GAP_REANCHOR_S
 
 
 def test_overrides_reach_the_model():

@@ -19,7 +19,7 @@ from dvt_model.params import BrakeParams
 def test_schema_names_and_defaults():
     assert list(MODEL_PARAMETERS) == ["params", "M", "D", "motor_constant", "band_gain",
                                       "band_time_constant", "A", "B", "effects", "mode",
-                                      "reanchor_period", "gap_reset", "load",
+                                      "reanchor_period", "gap_reset", "gap_reanchor", "load",
                                       "detector.enabled", "detector.sample_rate_hz",
                                       "detector.block_s", "detector.settle_s",
                                       "detector.learn_s",

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dvt_model.contract import GAP_RESET_S
+from dvt_model.contract import GAP_REANCHOR_S, GAP_RESET_S
 from dvt_model.errors import SimulationError
 from dvt_model.hybrid import HybridModel
 from dvt_model.linear import LinearModel
@@ -45,23 +45,27 @@ def test_reanchor_mode_and_gap(params):
 
 
 def test_a_burst_of_lost_samples_reanchors_and_a_lost_sample_does_not(params):
-    """Lost samples (transport) at 1 kHz: a gap beyond ``gap_reset`` re-anchors (the held
-    inputs would leave the free run off), a gap within it is run through."""
+    """Lost samples (transport) at 1 kHz: a gap beyond ``gap_reanchor`` re-anchors (the held
+    inputs would leave the free run off) and is no restart, a gap within it is run through;
+    a gap beyond ``gap_reset`` is a restart."""
     t, im, ib, r = _truth(params, 2000)
     keep = np.ones(len(t), bool)
     keep[500:503] = False  # 4 ms step: run through
-    lost = 1200, 1200 + round(2 * GAP_RESET_S / 1e-3)  # twice gap_reset: re-anchor
+    lost = 1200, 1200 + round(2 * GAP_REANCHOR_S / 1e-3)  # twice gap_reanchor: re-anchor
     keep[lost[0]:lost[1]] = False
     p = Predictor(HybridModel.from_params(params), params.brake)
     out = {k: p.update(t[k], im[k], ib[k], r.omega[k]) for k in np.flatnonzero(keep)}
     assert [k for k, o in out.items() if o.anchored] == [0, lost[1]]
+    assert [k for k, o in out.items() if o.restarted] == [0] and p.gap_anchors == 1
+    restart = p.update(t[-1] + 2 * GAP_RESET_S, im[-1], ib[-1], r.omega[-1])
+    assert restart.anchored and restart.restarted and p.gap_anchors == 1
 
 
 def test_a_stream_slower_than_gap_reset_runs_free_after_its_first_step(params):
-    """62.5 Hz (16 ms > ``gap_reset``): the first step anchors (no previous step to compare),
+    """62.5 Hz (16 ms > ``gap_reanchor``): the first step anchors (no previous step to compare),
     then the stream runs free; a lost sample (32 ms) is run through, two (48 ms) re-anchor."""
     step = 16
-    assert step * 1e-3 > GAP_RESET_S and 2 * step < GAP_PERIODS * step < 3 * step
+    assert step * 1e-3 > GAP_REANCHOR_S and 2 * step < GAP_PERIODS * step < 3 * step
     t, im, ib, r = _truth(params, 2000)
     idx = [k for k in range(0, 2000, step) if k not in (800, 1200, 1200 + step)]
     p = Predictor(HybridModel.from_params(params), params.brake)
@@ -168,7 +172,7 @@ def test_linear_model_integrates_angles(params):
     from dvt_model.linear import LinearModel
     A = np.array([[-1.0, 0.0], [0.0, -1.0]])
     B = np.zeros((2, 2))
-    p = Predictor(LinearModel(A, B), params.brake, gap_reset=0.05)  # one 10-ms step
+    p = Predictor(LinearModel(A, B), params.brake, gap_reanchor=0.05)  # one 10-ms step
     p.update(0.0, 0.0, (0, 0, 0), (2.0, 1.0), (0.0, 0.0))
     out = p.update(0.01, 0.0, (0, 0, 0), (2.0, 1.0), (0.02, 0.01))
     assert out.predicted_position[0] == pytest.approx(2.0 * (1 - np.exp(-0.01)), rel=1e-3)
