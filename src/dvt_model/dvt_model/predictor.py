@@ -17,7 +17,8 @@ Initialisation and re-anchoring:
   or loses its inputs: a gap longer than ``gap_reanchor`` seconds and than
   :data:`GAP_PERIODS` times the previous stamp step (samples lost in transport: the inputs
   held across a lost burst would leave the free run off for good; the second bound keeps a
-  stream slower than ``gap_reanchor``, e.g. 62.5 Hz, running free after its first step).
+  stream slower than ``gap_reanchor``, e.g. 62.5 Hz, running free; the first step, with no
+  previous one to compare, is run through).
 - ``mode="reanchor"``: additionally re-anchors every ``reanchor_period`` seconds, so the
   residual shows the model's short-horizon prediction error and never drifts; useful to watch
   a live machine for hours.
@@ -279,7 +280,7 @@ class Predictor:
         last = self._last_stamp
         step_s = 0.0 if last is None else stamp - last
         restarted = last is None or stamp <= last or step_s > self.gap_reset
-        lost = (not restarted and step_s > self.gap_reanchor
+        lost = (not restarted and self._last_step > 0.0 and step_s > self.gap_reanchor
                 and step_s > GAP_PERIODS * self._last_step)
         if restarted or lost or (
                 self.mode == "reanchor" and stamp - self._anchor_stamp >= self.reanchor_period):
