@@ -68,8 +68,8 @@ from dvt_model.params import BrakeParams
 Array = NDArray[np.float64]
 Mode = Literal["simulate", "reanchor"]
 GAP_PERIODS = 2.5
-"""A stamp step longer than ``gap_reset`` re-anchors only if it is also longer than this many
-times the previous step: a lost sample or more at the stream's own rate."""
+"""A stamp step longer than ``gap_reanchor`` re-anchors only if it is also longer than this
+many times the previous step: more than one lost sample at the stream's own rate."""
 
 SUN_SPEED_LIMIT = 2400.0 * 2.0 * np.pi / 60.0
 """The machine's safe maximum sun speed, 2400 rpm, in rad/s (the driver refuses faster
