@@ -21,7 +21,7 @@ committed draw (gap 0.0416 rad) gives the grid value 0.04; the nominal plant (0.
 Live residual: carrier-3 RMS with the term below 0.85 times that without (measured 0.81 on the
 committed draw, 0.69-0.78 on the nominal plant, over 8 s slices); the sun's residual unchanged
 within 10 % (the play is on carrier 3's sensor). About 1.2 min on 2 cores (most of it the
-identification). A burst of samples lost in transport re-anchors the node (``gap_reset``): before
+identification). A burst of samples lost in transport re-anchors the node (``gap_reanchor``): before
 that rule, a burst of about 0.1 s in the replay with the term left the free run off for the rest
 of the slice (sun 5.60 against 2.21 rad/s without, a fresh-clone run of 729be9a).
 """

@@ -61,7 +61,7 @@ def test_a_burst_of_lost_samples_reanchors_and_a_lost_sample_does_not(params):
     assert restart.anchored and restart.restarted and p.gap_anchors == 1
 
 
-def test_a_stream_slower_than_gap_reset_runs_free_after_its_first_step(params):
+def test_a_stream_slower_than_gap_reanchor_runs_free_from_its_first_sample(params):
     """62.5 Hz (16 ms > ``gap_reanchor``): the stream runs free from its first sample (the
     first step has no previous one to compare with); a lost sample (32 ms) is run through, two
     (48 ms) re-anchor."""
