@@ -381,7 +381,6 @@ class ModelNode(Node):
         self.published = 0
         self._guard_before = 0  # guard re-anchors of the predictors replaced so far
         self._gap_before = 0  # re-anchors on lost samples of the predictors replaced so far
-        self._gap_seen = 0  # the present predictor's gap_anchors the detector has seen
         self._staged: ModelTransaction | None = None  # accepted by _on_set, applied next
         self.pairer: LivePairer[bytes] = LivePairer(slots=2, max_pending=2000)
         self._speeds = JointStateReader(SPEED_NAMES, _VELOCITY, positions=True)
@@ -457,7 +456,6 @@ class ModelNode(Node):
             return
         self._guard_before += self.predictor.guard_reanchors
         self._gap_before += self.predictor.gap_anchors
-        self._gap_seen = 0
         self.predictor, self.model_desc = tx.predictor, tx.description
         # a push or rollback: learn the new model's residual (the last alarm's WARN hold stays)
         self._reset_detector("model")
@@ -505,8 +503,7 @@ class ModelNode(Node):
             t = stamp_ns * 1e-9
             self._last_stamp = t
             if pred.anchored and self.predictor.mode == "simulate":
-                if self.predictor.gap_anchors != self._gap_seen:  # lost samples: same stream
-                    self._gap_seen = self.predictor.gap_anchors
+                if pred.lost:  # lost samples: the same stream, the reference stays
                     self.blocks.clear()
                     self._settle_until = t + self.settle_s
                 else:

@@ -83,7 +83,8 @@ state beyond it has diverged and is re-anchored (see the module docstring)."""
 @dataclass(frozen=True)
 class Prediction:
     """Prediction for one sample: speeds and residual [rad/s], shape (2,) each; gear state;
-    whether the model was anchored at this sample and whether that was a stream (re)start;
+    whether the model was anchored at this sample, whether that was a stream (re)start
+    (``restarted``) or samples lost in transport (``lost``: the same stream goes on);
     predicted angles [rad] (2,) always, and the angle residual [rad] (2,) when the sample
     carried measured angles (else ``None``)."""
 
@@ -93,6 +94,7 @@ class Prediction:
     gear: int
     anchored: bool
     restarted: bool = False
+    lost: bool = False
     predicted_position: Array = field(default_factory=lambda: np.zeros(2))
     position_residual: Array | None = None
 
@@ -341,7 +343,7 @@ class Predictor:
             self._sq_pos.append(pos_res**2)
         self.samples += 1
         return Prediction(stamp=stamp, predicted=predicted, residual=residual, gear=gear,
-                          anchored=anchored, restarted=restarted,
+                          anchored=anchored, restarted=restarted, lost=lost,
                           predicted_position=position,
                           position_residual=pos_res)
 

@@ -57,8 +57,9 @@ def test_a_burst_of_lost_samples_reanchors_and_a_lost_sample_does_not(params):
     out = {k: p.update(t[k], im[k], ib[k], r.omega[k]) for k in np.flatnonzero(keep)}
     assert [k for k, o in out.items() if o.anchored] == [0, lost[1]]
     assert [k for k, o in out.items() if o.restarted] == [0] and p.gap_anchors == 1
+    assert [k for k, o in out.items() if o.lost] == [lost[1]]
     restart = p.update(t[-1] + 2 * GAP_RESET_S, im[-1], ib[-1], r.omega[-1])
-    assert restart.anchored and restart.restarted and p.gap_anchors == 1
+    assert restart.anchored and restart.restarted and not restart.lost and p.gap_anchors == 1
 
 
 def test_a_stream_slower_than_gap_reanchor_runs_free_from_its_first_sample(params):
