@@ -18,10 +18,16 @@ from dvt_driver.plant.hidden import (
     load_hidden,
     parse_hidden,
 )
-from dvt_driver.plant.physics import FrictionForces, WetBrakeEngagement, friction_velocity_floor
+from dvt_driver.plant.physics import (
+    FrictionForces,
+    Transmission,
+    WetBrakeEngagement,
+    friction_velocity_floor,
+)
 from dvt_model.brake import capacity_step
+from dvt_model.params import load_parameters
 
-PRESETS = ["backlash", "coulomb", "delay", "friction_step", "gravity_arm", "mesh_ripple",
+PRESETS = ["backlash", "bands", "coulomb", "delay", "friction_step", "gravity_arm", "mesh_ripple",
            "none", "oil_warmup", "payload_added", "position_friction", "stribeck", "wear",
            "wet_brake", "windage"]
 
@@ -30,7 +36,7 @@ def test_presets_are_bundled_and_valid() -> None:
     assert available_presets() == PRESETS
     expected = {"none": ["none"], "coulomb": ["coulomb_friction"],
                 "stribeck": ["stribeck_friction"], "windage": ["windage"],
-                "backlash": ["backlash"], "delay": ["measurement_delay"],
+                "backlash": ["backlash"], "bands": ["bands"], "delay": ["measurement_delay"],
                 "wet_brake": ["brake_engagement"], "gravity_arm": ["gravity_load"],
                 "mesh_ripple": ["mesh_ripple"], "position_friction": ["position_friction"],
                 # changing plants (test_plant_changes.py)
@@ -113,6 +119,12 @@ def test_truth_yaml_carries_effects_and_plant_settings() -> None:
                             "release_time": 0.01}}},
      r"wet_brake\.all\.viscous_fraction: expected a number <= 1, got 1\.5"),
     ({"friction_velocity": 0}, r"friction_velocity: expected a number > 0, got 0"),
+    ({"bands": {"gain": [6.0, 7.0]}},
+     r"bad\.yaml: bands\.gain: expected a list of 3 numbers \(bands 1, 2, 3\), got \[6\.0, 7\.0\]"),
+    ({"bands": {"time_constant": [0.02, 0.0, 0.02]}},
+     r"bands\.time_constant\[1\]: expected a number > 0, got 0\.0"),
+    ({"bands": {"gain": [6.0, 7.0, "x"]}}, r"bands\.gain\[2\]: expected a number, got 'x'"),
+    ({"bands": {"lag": [0.02, 0.02, 0.02]}}, r"bands\.lag: unknown key"),
     ([1, 2], r"bad\.yaml: expected a mapping at the top level, got \[1, 2\]"),
 ])
 def test_bad_configuration_names_key_and_value(data: object, message: str) -> None:
@@ -208,6 +220,34 @@ def test_wet_brake_shape_is_viscous_then_asperity() -> None:
     cap, _ = eng(cap, np.zeros(3), 0.01, ring)
     assert cap[0] == pytest.approx(2.0 * np.exp(-1.0))
     assert eng.applied_time[0] == 0.0
+
+
+def test_bands_as_built_replace_the_parameter_sets_law_per_band() -> None:
+    """``bands``: the plant's model runs each band's own gain and lag (the ones given; the
+    others the parameter set's law); the values round-trip through the mapping."""
+    params = load_parameters("physical")
+    law = params.brake
+    h = parse_hidden({"bands": {"gain": [6.5, 9.5, 7.2]}}, source="b")
+    assert not h.is_clean and h.effect_names() == ["bands"]
+    plant = Transmission(params, h)
+    assert plant.brake.gains.tolist() == [6.5, 9.5, 7.2]
+    assert plant.brake.time_constants.tolist() == law.time_constants.tolist()
+    assert plant.model.brake is plant.brake
+    both = parse_hidden({"bands": {"gain": [6.5, 9.5, 7.2], "time_constant": [0.03, 0.01, 0.02]},
+                         "wet_brake": {"band1": {"viscous_time": 0.03,
+                                                 "viscous_coefficient": 0.02,
+                                                 "viscous_fraction": 0.4, "asperity_time": 0.08,
+                                                 "release_time": 0.01}}}, source="b")
+    assert parse_hidden(both.to_mapping(), source="again").to_mapping() == both.to_mapping()
+    wet = Transmission(params, both)
+    # the bands without a wet shape keep a first-order lag: their own
+    eng = wet.model.engagement
+    assert isinstance(eng, WetBrakeEngagement)
+    target = np.array([0.0, 2.0, 2.0])
+    cap, _ = eng(np.zeros(3), target, 0.01, np.zeros(3))
+    assert cap[1] == pytest.approx(2.0 * -np.expm1(-0.01 / 0.01))
+    assert cap[2] == pytest.approx(2.0 * -np.expm1(-0.01 / 0.02))
+    assert Transmission(params, parse_hidden(None)).brake is law
 
 
 def test_position_effects_parse_round_trip_and_refuse_bad_values() -> None:

@@ -21,7 +21,7 @@ from dvt_driver.plant.hidden import (
 from dvt_model.params import load_parameters
 from dvt_model.recording import parse_truth
 
-DRAWN = ["backlash", "coulomb", "delay", "gravity_arm", "mesh_ripple", "position_friction",
+DRAWN = ["backlash", "bands", "coulomb", "delay", "gravity_arm", "mesh_ripple", "position_friction",
          "stribeck", "wet_brake", "windage"]
 """The effect presets: every one draws its magnitudes (the changing plants and ``none`` do not)."""
 

@@ -89,7 +89,9 @@ class Transmission:
         """The declared load at the start (``truth.yaml``; changes may replace :attr:`load`)."""
         self.hidden = hidden if hidden is not None else HiddenEffects()
         h = self.hidden
-        self._engagement = (WetBrakeEngagement(h.wet_brake, params.brake.time_constant)
+        self.brake = h.bands.apply(params.brake) if h.bands is not None else params.brake
+        """The bands the plant runs: the parameter set's, or as built (``bands``)."""
+        self._engagement = (WetBrakeEngagement(h.wet_brake, self.brake.time_constants)
                             if h.wet_brake else None)
         rigid0 = rigid_model(params)
         self._gravity = h.gravity_arm
@@ -100,7 +102,7 @@ class Transmission:
         self._ripple_teeth = (params.stages[h.mesh_ripple.stage - 1].sun
                               if h.mesh_ripple is not None else 0)
         self._bumps: list[tuple[Array, Any, float]] = []  # (form, bump, v_eps) per member
-        self.model = HybridModel(rigid0, params.brake, extra_force=self._extra_force,
+        self.model = HybridModel(rigid0, self.brake, extra_force=self._extra_force,
                                  engagement=self._engagement, load=load,
                                  angle_force=self._angle_force if h.has_angle_effects else None)
         self._m_inv = np.linalg.inv(self.model.rigid.M)
@@ -189,7 +191,7 @@ class Transmission:
             if (load is None) != (self.load is None) or (
                     load is not None and self.load is not None and load != self.load):
                 self.load = load
-                self.model = HybridModel(self._rigid0, self.params.brake,
+                self.model = HybridModel(self._rigid0, self.brake,
                                          extra_force=self._extra_force,
                                          engagement=self._engagement, load=load,
                                          angle_force=self.model.angle_force)
@@ -370,11 +372,12 @@ class WetBrakeEngagement:
 
     Args:
         shapes: band (1..3) -> :class:`WetBrake`.
-        time_constant: first-order time constant of the other bands [s].
+        time_constant: first-order time constant of the other bands [s] (one, or one per
+            band, shape (3,)).
         on_threshold: static torque above which a band counts as applied [N m].
     """
 
-    def __init__(self, shapes: Mapping[int, WetBrake], time_constant: float,
+    def __init__(self, shapes: Mapping[int, WetBrake], time_constant: float | Array,
                  on_threshold: float = 1e-6) -> None:
         self.shapes = dict(shapes)
         self.time_constant = time_constant

@@ -35,6 +35,9 @@ YAML schema (units SI; every top-level key optional)::
       phase: 0.0             # optional [rad]
     position_friction:       # a friction bump at one angle of a member (a tight spot)
       carrier3: {amplitude: 0.3, center: 1.0, width: 0.3}   # [N m], [rad], [rad]
+    bands:                   # the band brakes as built: per band 1, 2, 3 (each key optional)
+      gain: [6.5, 9.5, 7.2]  # static torque per brake-motor ampere [N m/A]
+      time_constant: [0.03, 0.015, 0.025]   # first-order engagement [s]
 
 In a preset any number may instead be a distribution, drawn per plant seed
 (:mod:`~dvt_driver.plant.hidden.draw`: ``{uniform: [lo, hi], fixed: v}``, ``{log_uniform: [lo,
@@ -112,9 +115,15 @@ may be left out) within its bounds, the sign smoothed with the member's ``v_eps`
 ``laws: {carrier3: [{law: stribeck, Fs: 0.2, vs: 1.5}]}``); a law added to the table reaches
 the plant this way without a change here. Effect name: the law's name.
 
+``bands`` is no effect the model lacks: it replaces the parameter set's shared band law
+(``dvt_model.params.BrakeParams``: one gain from the band geometry and lining, one lag) by each
+band's own gain and lag, which the model carries (``band_gain``, ``band_time_constant``) and
+the identifier fits in its baseline; a plant without it runs the parameter set's law, the
+identifier's prior. Effect name ``bands``.
+
 Presets (``config/*.yaml`` in this package): ``none``, ``coulomb``, ``stribeck``, ``windage``,
-``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``
-(drawn per seed), and the changing plants ``wear``, ``oil_warmup``, ``payload_added``,
+``backlash``, ``delay``, ``wet_brake``, ``gravity_arm``, ``mesh_ripple``, ``position_friction``,
+``bands`` (drawn per seed), and the changing plants ``wear``, ``oil_warmup``, ``payload_added``,
 ``friction_step`` (:func:`available_presets`, :func:`load_hidden`).
 
 Modules: :mod:`~dvt_driver.plant.hidden.effects` (the effects as data, the schedule,
@@ -133,6 +142,7 @@ from dvt_driver.plant.hidden.effects import (
     DEFAULT_FRICTION_VELOCITY,
     MEMBERS,
     Backlash,
+    Bands,
     Change,
     HiddenEffects,
     MeshRipple,
@@ -158,6 +168,7 @@ __all__ = [
     "MAX_DAMPING_SCALE",
     "MEMBERS",
     "Backlash",
+    "Bands",
     "Change",
     "HiddenEffects",
     "MeshRipple",

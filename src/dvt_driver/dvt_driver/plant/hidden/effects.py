@@ -4,6 +4,7 @@ schedule (:func:`scheduled_values`) and the ``truth.yaml`` text (pure; the schem
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -13,12 +14,14 @@ import numpy as np
 import yaml
 
 from dvt_model.load import JointLoad
+from dvt_model.params import BrakeParams
 
 __all__ = [
     "BACKLASH_LOCATIONS",
     "DEFAULT_FRICTION_VELOCITY",
     "MEMBERS",
     "Backlash",
+    "Bands",
     "Change",
     "HiddenEffects",
     "MeshRipple",
@@ -172,6 +175,41 @@ class WetBrake:
 
 
 @dataclass(frozen=True)
+class Bands:
+    """The three band brakes as built, not as designed: each band's own static gain and
+    engagement time constant in place of the parameter set's shared law (a lining's friction
+    coefficient and a band's fit spread from band to band). Not an effect the model lacks: the
+    model carries one gain and one lag per band (``BrakeParams.band_gain``,
+    ``band_time_constant``), and the identifier fits them in its baseline.
+
+    Attributes:
+        gain: static brake torque per brake-motor ampere of bands 1..3 [N m/A], each > 0, or
+            ``None`` (the parameter set's law).
+        time_constant: engagement time constant of bands 1..3 [s], each > 0, or ``None``.
+    """
+
+    gain: tuple[float, float, float] | None = None
+    time_constant: tuple[float, float, float] | None = None
+
+    def apply(self, brake: BrakeParams) -> BrakeParams:
+        """``brake`` with these bands' gains and time constants (those given)."""
+        return dataclasses.replace(
+            brake,
+            band_gain=self.gain if self.gain is not None else brake.band_gain,
+            band_time_constant=(self.time_constant if self.time_constant is not None
+                                else brake.band_time_constant))
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The YAML mapping (schema of :mod:`dvt_driver.plant.hidden`, ``bands``)."""
+        out: dict[str, Any] = {}
+        if self.gain is not None:
+            out["gain"] = list(self.gain)
+        if self.time_constant is not None:
+            out["time_constant"] = list(self.time_constant)
+        return out
+
+
+@dataclass(frozen=True)
 class Change:
     """One scheduled change of the plant (see the module docstring, ``changes``).
 
@@ -280,6 +318,7 @@ class HiddenEffects:
         gravity_arm: an undeclared :class:`~dvt_model.load.JointLoad` or ``None``.
         mesh_ripple: :class:`MeshRipple` or ``None``.
         position_friction: member -> :class:`PositionFriction`.
+        bands: the band brakes as built (:class:`Bands`), or ``None`` (the parameter set's).
         laws: member -> speed laws of :data:`dvt_model.laws.LAWS` on it, each ``(law name,
             its parameters by the law's field names)``; their sign is smoothed with the
             friction laws' ``v_eps`` (a law of the table reaches the plant without a field
@@ -303,6 +342,7 @@ class HiddenEffects:
     gravity_arm: JointLoad | None = None
     mesh_ripple: MeshRipple | None = None
     position_friction: dict[str, PositionFriction] = field(default_factory=dict)
+    bands: Bands | None = None
     laws: dict[str, tuple[tuple[str, dict[str, float]], ...]] = field(default_factory=dict)
     damping_scale: float = 1.0
     changes: tuple[Change, ...] = ()
@@ -314,7 +354,7 @@ class HiddenEffects:
         """True when no effect is configured."""
         return not (self.coulomb or self.stribeck or self.windage or self.laws or self.backlash
                     or self.measurement_delay > 0.0 or self.wet_brake or self.has_angle_effects
-                    or self.damping_scale != 1.0 or self.changes)
+                    or self.damping_scale != 1.0 or self.changes or self.bands is not None)
 
     @property
     def has_angle_effects(self) -> bool:
@@ -344,6 +384,8 @@ class HiddenEffects:
             names.append("mesh_ripple")
         if self.position_friction:
             names.append("position_friction")
+        if self.bands is not None:
+            names.append("bands")
         if self.damping_scale != 1.0:
             names.append("damping_scale")
         if self.changes:
@@ -386,6 +428,8 @@ class HiddenEffects:
             out["position_friction"] = {m: {"amplitude": b.amplitude, "center": b.center,
                                             "width": b.width}
                                         for m, b in self.position_friction.items()}
+        if self.bands is not None:
+            out["bands"] = self.bands.to_mapping()
         if self.damping_scale != 1.0:
             out["damping_scale"] = self.damping_scale
         if self.changes:

@@ -20,6 +20,7 @@ from dvt_driver.plant.hidden.effects import (
     DEFAULT_FRICTION_VELOCITY,
     MEMBERS,
     Backlash,
+    Bands,
     Change,
     HiddenEffects,
     MeshRipple,
@@ -105,6 +106,18 @@ def _keys(data: Mapping[str, Any], where: str, required: tuple[str, ...],
                                      f"{list(required)})")
 
 
+def _per_band(value: Any, where: str, hi: float) -> tuple[float, float, float] | None:
+    """Three numbers in ``(0, hi]``, bands 1..3 (``None``: not given)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 3:
+        raise HiddenEffectsError(f"{where}: expected a list of 3 numbers (bands 1, 2, 3), "
+                                 f"got {value!r}")
+    a, b, c = (_num(v, f"{where}[{i}]", lo=0.0, lo_open=True, hi=hi)
+               for i, v in enumerate(value))
+    return a, b, c
+
+
 def _member(name: Any, where: str) -> str:
     if name not in MEMBERS:
         raise HiddenEffectsError(f"{where}.{name}: unknown member (expected one of "
@@ -113,7 +126,7 @@ def _member(name: Any, where: str) -> str:
 
 
 _TOP = ("coulomb", "stribeck", "windage", "laws", "backlash", "measurement_delay", "wet_brake",
-        "friction_velocity", "gravity_arm", "mesh_ripple", "position_friction",
+        "friction_velocity", "gravity_arm", "mesh_ripple", "position_friction", "bands",
         "damping_scale", "changes")
 _CHANGE_KEYS = ("at", "ramp", "coulomb", "windage", "damping_scale", "load", "note")
 MAX_DAMPING_SCALE = 10.0
@@ -362,6 +375,15 @@ def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
                 center=_num(d["center"], f"{bw}.center"),
                 width=_num(d["width"], f"{bw}.width", lo=0.0, lo_open=True, hi=10.0))
 
+    built: Bands | None = None
+    if data.get("bands") is not None:
+        bw = f"{w}bands"
+        d = _map(data["bands"], bw)
+        _keys(d, bw, (), ("gain", "time_constant"))
+        built = Bands(gain=_per_band(d.get("gain"), f"{bw}.gain", hi=1000.0),
+                      time_constant=_per_band(d.get("time_constant"), f"{bw}.time_constant",
+                                              hi=10.0))
+
     scale = 1.0
     if data.get("damping_scale") is not None:
         scale = _num(data["damping_scale"], f"{w}damping_scale", lo=0.0, hi=MAX_DAMPING_SCALE)
@@ -377,4 +399,4 @@ def parse_hidden(data: Any, source: str = "<mapping>") -> HiddenEffects:
                          backlash=backlash,
                          measurement_delay=delay, wet_brake=wet, friction_velocity=fv,
                          gravity_arm=gravity, mesh_ripple=ripple, position_friction=bumps,
-                         damping_scale=scale, changes=tuple(changes), source=source)
+                         bands=built, damping_scale=scale, changes=tuple(changes), source=source)

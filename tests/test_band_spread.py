@@ -1,0 +1,127 @@
+"""The band brakes as built: each band's own gain and engagement lag come back from the data.
+
+The plant (preset ``bands``, :mod:`dvt_driver.plant.hidden`) replaces the parameter set's one
+band law (8.0 N m/A, 20 ms: the ``dvt`` description's priors) by a gain and a lag per band,
+drawn per seed (gains 5.6-10.8 N m/A, lags 10-40 ms). Estimation and validation runs are the
+shift-rich experiment (``ident_shifts``: 12 engagements against a slipping ring, every band
+four times), made offline through the driver's supervisor in ``tmp_path`` with different
+experiment and noise seeds. The identifier's baseline (the bands are its model effects, no
+candidate added) must give every band's gain and lag within 3 reported standard deviations of
+the plant's (:func:`recorded.within`, the HAC sandwich std of the output-error fit).
+
+Today the lags are not recovered (strict xfail below, with the figures): the identifier's
+engagement lags come out 5-30 % short of the plant's, far outside the reported std, and band
+1's gain 2 % low; see ``docs/identification.md``.
+
+The test can fail: for the fixed draw (the preset's nominal plant, every value off the law),
+it first checks that each prior lies more than 3 reported std from the truth, so a fit that
+stayed at its start would fail the recovery check. One drawn seed adds a plant nobody chose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+from recorded import STD_BOUND, within
+
+from dvt_driver.plant.hidden import HiddenEffects, load_hidden
+from dvt_driver.plant.offline import record_offline
+from dvt_driver.run.experiment_core import build
+from dvt_identify import identifiability
+from dvt_identify.description import load_description
+from dvt_identify.loop import LoopConfig, identify
+from dvt_identify.pipeline import load_segments
+from dvt_model.params import load_parameters
+
+pytestmark = pytest.mark.slow
+
+PARAMS = "physical"
+"""The parameter set the plant runs (the committed recordings' plant)."""
+
+
+def _identify(hidden: HiddenEffects, seed: int, tmp_path: Path
+              ) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
+    """Baseline fit on an estimation run (experiment and noise seed ``seed``) validated on
+    another (``seed + 100``): parameters, their reported std, and the description's priors."""
+    params = load_parameters(PARAMS)
+    est = record_offline(tmp_path / "est", build("ident_shifts", seed=seed), params, hidden,
+                         seed=seed)
+    val = record_offline(tmp_path / "val", build("ident_shifts", seed=seed + 100), params,
+                         hidden, seed=seed + 100)
+    desc = load_description("dvt")
+    est_segs = load_segments([est], desc)
+    chk = identifiability.check(desc, est_segs)
+    desc = identifiability.apply(desc, chk)
+    cfg = dataclasses.replace(LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate),
+                              max_effects=0)
+    r = identify(est_segs, load_segments([val], desc), desc, cfg, check=chk)
+    priors = {q.name: q.initial for e in desc.make_model_effects() for q in e.params}
+    return r.baseline.parameters(), r.baseline.fit.parameter_std(), priors
+
+
+def _truth(hidden: HiddenEffects) -> dict[str, float]:
+    """The plant's band values by the identifier's parameter names."""
+    assert hidden.bands is not None and hidden.bands.gain and hidden.bands.time_constant
+    out = {}
+    for k in (1, 2, 3):
+        out[f"band_gain_ring{k}"] = hidden.bands.gain[k - 1]
+        out[f"band_time_constant_brake{k}"] = hidden.bands.time_constant[k - 1]
+    return out
+
+
+GAIN_TOLERANCE = 0.03
+"""Relative error allowed for a band's gain in the test that passes today (measured at most
+1.9 %, bands 1 of both draws; the priors lie 11-26 % from the plants' gains)."""
+
+_RESULTS: dict[int | None, tuple[dict[str, float], dict[str, float], dict[str, float]]] = {}
+
+
+def _cached(draw: int | None, tmp_path: Path
+            ) -> tuple[HiddenEffects, tuple[dict[str, float], dict[str, float], dict[str, float]]]:
+    hidden = load_hidden("bands", draw=draw)
+    if draw not in _RESULTS:
+        _RESULTS[draw] = _identify(hidden, 31 if draw is None else draw, tmp_path)
+    return hidden, _RESULTS[draw]
+
+
+@pytest.mark.parametrize("draw", [None, 41], ids=["fixed", "seed41"])
+def test_each_bands_gain_moves_from_the_prior_to_the_plants(draw: int | None,
+                                                           tmp_path: Path) -> None:
+    """Every band's gain within 3 % of the plant's, while its prior is more than 10 % off (a
+    fit that stayed at its start fails)."""
+    hidden, (p, _sd, priors) = _cached(draw, tmp_path)
+    truth = _truth(hidden)
+    for k in (1, 2, 3):
+        name = f"band_gain_ring{k}"
+        assert name in p, f"not identified: {name} (parameters {sorted(p)})"
+        assert abs(priors[name] - truth[name]) > 0.1 * truth[name], (name, priors[name])
+        assert abs(p[name] - truth[name]) <= GAIN_TOLERANCE * truth[name], (
+            f"{name}: estimate {p[name]:.4g} vs the plant's {truth[name]:.4g} (prior "
+            f"{priors[name]:.4g})")
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "identifier: the engagement lags come out short of the plant's, far beyond the reported "
+    "std (2026-11-27, fixed draw: 28.6, 10.4, 21.9 ms vs 30, 15, 25 ms, 6-20 std off; seed 41: "
+    "14.9, 29.9, 19.0 ms vs 16.4, 35.5, 22.0 ms); the gains are within 2 % of the plant's "
+    "(from priors 8.0 N m/A 12-26 % off), bands 2 and 3 within 3 std, band 1 2 % low "
+    "(6.39 +- 0.03 vs 6.5, 3.7 std; 7.05 +- 0.05 vs 7.18, 2.9 std)"))
+@pytest.mark.parametrize("draw", [None, 41], ids=["fixed", "seed41"])
+def test_each_bands_gain_and_lag_are_the_plants(draw: int | None, tmp_path: Path) -> None:
+    """Every band's gain [N m/A] and engagement time constant [s] within 3 reported std of the
+    plant's; for the fixed draw, every prior more than 3 std off (the check has power)."""
+    hidden, (p, sd, priors) = _cached(draw, tmp_path)
+    truth = _truth(hidden)
+    missing = sorted(set(truth) - set(p))
+    assert not missing, f"not identified: {missing} (parameters {sorted(p)})"
+    report = {n: (p[n], sd[n], truth[n], priors[n]) for n in truth}
+    print("\nname: estimate, std, truth, prior", report)
+    if draw is None:
+        for name, t in truth.items():
+            assert abs(priors[name] - t) > STD_BOUND * sd[name], (
+                f"{name}: prior {priors[name]} within {STD_BOUND} std ({sd[name]:.3g}) of the "
+                f"truth {t}: the check below could not fail")
+    for name, t in truth.items():
+        within(name, p[name], sd[name], t)
