@@ -119,6 +119,13 @@ average of 6 from other jobs: the model node's p99 latency 3.4-6.6 ms at nicenes
 1.5-1.8 ms at niceness -10, 0.41-0.61 ms at ``SCHED_RR`` 10."""
 DETECTOR_SETTLE_S = 5.0
 """The model node's ``detector.settle_s`` in the live runs [s]."""
+PRINT_WAIT_S = 10.0
+"""Longest wait [s] in :func:`run_episode`, after the episode's report file appeared, for the
+launcher to print the record (the identifier writes the file, then publishes the record on
+the contract's topic; the launcher polls its monitor every 0.1 s): a stop sent between the two
+would cut the record from the launcher's log. About 0.1-0.5 s on this machine; the bound only
+delays the stop."""
+
 RESTORED_FACTOR = 1.5
 """The residual is back at the noise level when its 1-s RMS is within this factor of the
 clean level (median 1-s RMS before the change) on both outputs."""
@@ -205,8 +212,9 @@ def run_episode(logdir: Path, launch_args: Sequence[str], timeout: float,
                 env: dict[str, str] | None = None, log: Any = None,
                 cpu: CpuSampler | None = None) -> int:
     """Run ``dvt-launch`` with ``launch_args`` until :func:`change_episode` finds the episode
-    of the injected change (then SIGINT: the launcher stops everything in order), the launcher
-    ends, or ``timeout`` [s] (SIGINT, then SIGKILL of its process group). Returns the
+    of the injected change and the launcher has printed it (at most :data:`PRINT_WAIT_S`
+    later; then SIGINT: the launcher stops everything in order), the launcher ends, or
+    ``timeout`` [s] (SIGINT, then SIGKILL of its process group). Returns the
     launcher's exit status (130 when stopped here). ``cpu``: a started sampler; the launcher's
     process tree is its chain, and it is stopped before the launcher is (its figures in
     ``cpu.figures``)."""
@@ -217,9 +225,19 @@ def run_episode(logdir: Path, launch_args: Sequence[str], timeout: float,
     if cpu is not None:
         cpu.set_root(proc.pid)
     deadline = time.monotonic() + timeout
+    printed_by: float | None = None  # set once the episode's report file is there
+    line = ""  # the launcher's print of that episode
     try:
         while proc.poll() is None:
-            if change_episode(logdir) is not None or time.monotonic() > deadline:
+            now = time.monotonic()
+            if printed_by is None:
+                rec = change_episode(logdir)
+                if rec is not None:
+                    printed_by = now + PRINT_WAIT_S
+                    line = f"episode {rec.get('episode')}:"
+            done = printed_by is not None and (
+                now > printed_by or line in (logdir / "launch.log").read_text(errors="replace"))
+            if done or now > deadline:
                 if cpu is not None:
                     cpu.figures = cpu.stop()
                 os.killpg(proc.pid, signal.SIGINT)
@@ -229,7 +247,7 @@ def run_episode(logdir: Path, launch_args: Sequence[str], timeout: float,
                     os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait(timeout=10.0)
                 break
-            time.sleep(0.5)
+            time.sleep(0.5 if printed_by is None else 0.1)
     finally:
         if proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
