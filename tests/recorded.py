@@ -68,12 +68,20 @@ def identify_recorded(name: str, tmp_path: Path, max_effects: int | None = None
     run (recorded under ``tmp_path / 'val'``), at most ``max_effects`` accepted effects
     (``None``: the description's own, 3 rounds); the result and the validation run's path."""
     val = validation_run(name, tmp_path / "val")
+    return identify_bags(BAGS / name, val, max_effects), val
+
+
+def identify_bags(est_bag: Path, val_bag: Path, max_effects: int | None = None
+                  ) -> IdentificationResult:
+    """Identify the ``dvt`` description on ``est_bag`` validated on ``val_bag`` as
+    ``dvt-identify`` does (identifiability check applied), at most ``max_effects`` accepted
+    effects (``None``: the description's own; 0: the baseline only)."""
     desc = load_description("dvt")
-    est = load_segments([BAGS / name], desc)
-    vals = load_segments([val], desc)
+    est = load_segments([est_bag], desc)
+    vals = load_segments([val_bag], desc)
     chk = identifiability.check(desc, est)
     desc = identifiability.apply(desc, chk)
     cfg = LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate)
     if max_effects is not None:
         cfg = dataclasses.replace(cfg, max_effects=max_effects)
-    return identify(est, vals, desc, cfg, check=chk), val
+    return identify(est, vals, desc, cfg, check=chk)

@@ -20,19 +20,15 @@ stayed at its start would fail the recovery check. One drawn seed adds a plant n
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import pytest
-from recorded import STD_BOUND, within
+from recorded import STD_BOUND, identify_bags, within
 
 from dvt_driver.plant.hidden import HiddenEffects, load_hidden
 from dvt_driver.plant.offline import record_offline
 from dvt_driver.run.experiment_core import build
-from dvt_identify import identifiability
 from dvt_identify.description import load_description
-from dvt_identify.loop import LoopConfig, identify
-from dvt_identify.pipeline import load_segments
 from dvt_model.params import load_parameters
 
 pytestmark = pytest.mark.slow
@@ -50,13 +46,9 @@ def _identify(hidden: HiddenEffects, seed: int, tmp_path: Path
                          seed=seed)
     val = record_offline(tmp_path / "val", build("ident_shifts", seed=seed + 100), params,
                          hidden, seed=seed + 100)
+    r = identify_bags(est, val, max_effects=0)
+    # the priors: the description's initial values
     desc = load_description("dvt")
-    est_segs = load_segments([est], desc)
-    chk = identifiability.check(desc, est_segs)
-    desc = identifiability.apply(desc, chk)
-    cfg = dataclasses.replace(LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate),
-                              max_effects=0)
-    r = identify(est_segs, load_segments([val], desc), desc, cfg, check=chk)
     priors = {q.name: q.initial for e in desc.make_model_effects() for q in e.params}
     return r.baseline.parameters(), r.baseline.fit.parameter_std(), priors
 
