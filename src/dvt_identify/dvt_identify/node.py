@@ -70,6 +70,7 @@ from dvt_model.contract import (
     MODEL_RESIDUAL,
     RECORDER_SNAPSHOT_REQUEST,
     RECORDER_SNAPSHOT_RESULT,
+    REPLY_WAIT_SERVICES,
     SNAPSHOT_REQUEST_QOS,
     SPEED_NAMES,
     SRV_IDENTIFY_RUN,
@@ -671,7 +672,7 @@ def _json_default(obj: Any) -> Any:
 
 
 def main(args: list[str] | None = None) -> None:
-    rosutil.init(args)
+    rosutil.init(args, reply_wait=REPLY_WAIT_SERVICES)
     try:
         node = IdentifyNode()
     except SupervisorError as exc:  # invalid supervisor.* parameters given at start-up

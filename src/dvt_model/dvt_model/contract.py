@@ -59,6 +59,18 @@ SRV_DRIVER_RELEASE_BRAKES = "/dvt/driver/release_brakes"
 IDENTIFY_REQUEST = "/dvt/identify/request"
 IDENTIFY_RESULT = "/dvt/identify/result"
 SRV_IDENTIFY_RUN = "/dvt/identify/run"
+REPLY_WAIT_S = 2.0
+"""How long a service of a node that is not real-time (the identifier) waits for the client's
+response reader to be matched before it drops the reply, s (``rmw_fastrtps`` waits the response
+writer's ``max_blocking_time``, 100 ms by default; :func:`dvt_model.rosutil.init`).
+
+Budget, measured with ``scripts/service_lag.py`` (a fresh participant per call, through a
+discovery server across two network namespaces): the server had to wait for the reader in 4 of
+40 calls (up to 69 ms) on a quiet machine and in 5 of 60 (up to 70 ms) with both cores busy,
+against the default 100 ms; a red fresh-clone run lost the identifier's reply this way. 2 s is
+29x the worst wait measured, and a client that has really gone blocks the identifier's executor
+(not its worker) for at most that long. Real-time nodes (driver, model node) keep the default:
+a wait there would stall their samples."""
 IDENTIFY_EPISODE = "/dvt/identify/episode"
 """The identifier's supervisor episode reports (``std_msgs/String`` JSON, ``docs/loop.md``),
 QoS :data:`CHANGE_QOS` (the last 10 for a late subscriber)."""
@@ -83,6 +95,59 @@ RECORDER_NODE = "dvt_recorder"
 SRV_MODEL_RESET_DETECTOR = "~/reset_detector"
 """The model node's service (``std_srvs/srv/Trigger``, private name) that makes its change
 detector learn anew (:func:`model_reset_detector_service`)."""
+
+
+def reply_topic(service: str) -> str:
+    """The DDS topic of ``service``'s replies, as ``rmw_fastrtps`` names it (and looks up an
+    XML profile by): ``rr`` + the absolute service name + ``Reply``.
+
+    Raises:
+        ContractError: ``service`` is not an absolute name.
+    """
+    if not service.startswith("/") or service.startswith("//") or any(
+            ch.isspace() or ch in '<>&"' for ch in service):
+        raise ContractError(f"service: expected an absolute ROS name such as "
+                            f"'/dvt/identify/run', got {service!r}")
+    return f"rr{service}Reply"
+
+
+REPLY_WAIT_SERVICES: tuple[str, ...] = (SRV_IDENTIFY_RUN,)
+"""Services whose replies wait :data:`REPLY_WAIT_S` (those of the identifier)."""
+
+
+def reply_wait_writers(services: Sequence[str] = REPLY_WAIT_SERVICES,
+                       wait_s: float = REPLY_WAIT_S) -> str:
+    """Fast DDS XML ``<data_writer>`` profiles under which the reply writer of each of
+    ``services`` waits up to ``wait_s`` seconds for the client's response reader (see
+    :data:`REPLY_WAIT_S`); the elements of a ``<profiles>`` block.
+
+    Raises:
+        ContractError: no service, a relative name, or ``wait_s`` not in (0, 3600] s.
+    """
+    if not services:
+        raise ContractError("reply wait: no service given")
+    if not (isinstance(wait_s, (int, float)) and math.isfinite(wait_s) and 0 < wait_s <= 3600):
+        raise ContractError(f"reply wait: expected 0 < wait_s <= 3600 s, got {wait_s!r}")
+    sec = int(wait_s)
+    nanosec = round((wait_s - sec) * 1e9)
+    return "".join(
+        f'    <data_writer profile_name="{reply_topic(s)}">\n'
+        "      <qos><reliability><kind>RELIABLE</kind>"
+        f"<max_blocking_time><sec>{sec}</sec><nanosec>{nanosec}</nanosec></max_blocking_time>"
+        "</reliability></qos>\n"
+        "    </data_writer>\n" for s in services)
+
+
+def reply_wait_profile(services: Sequence[str] = REPLY_WAIT_SERVICES,
+                       wait_s: float = REPLY_WAIT_S) -> str:
+    """A whole Fast DDS XML profiles document of :func:`reply_wait_writers`.
+
+    Raises:
+        ContractError: as :func:`reply_wait_writers`.
+    """
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n'
+            '<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+            f"  <profiles>\n{reply_wait_writers(services, wait_s)}  </profiles>\n</dds>\n")
 
 
 def model_reset_detector_service(node_name: str = MODEL_NODE) -> str:

@@ -8,9 +8,11 @@ reliable publishers.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import signal
 import sys
+import tempfile
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -32,12 +34,15 @@ from dvt_model.contract import (
 from dvt_model.contract import (
     LATCHED_QOS as _LATCHED_QOS_SPEC,
 )
+from dvt_model.contract import REPLY_WAIT_S, QosSpec, reply_wait_profile
 from dvt_model.contract import (
     SENSOR_QOS as _SENSOR_QOS_SPEC,
 )
-from dvt_model.contract import QosSpec
 
 __all__ = ["COMMAND_QOS", "LATCHED_QOS", "SENSOR_QOS", "qos"]
+
+PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
+"""Fast DDS 2.x (the Jazzy wheels) reads its XML profiles from the file this names."""
 
 
 def qos(spec: QosSpec) -> QoSProfile:
@@ -139,8 +144,37 @@ def spin(node: Node, *, events: bool = True) -> None:
             rclpy.shutdown()
 
 
-def init(args: list[str] | None = None) -> list[str]:
-    """``rclpy.init`` without rclpy's own signal handlers; returns non-ROS args."""
+def use_reply_wait(services: Sequence[str], wait_s: float = REPLY_WAIT_S,
+                   env: dict[str, str] | None = None) -> str | None:
+    """Make this process's participant use
+    :func:`~dvt_model.contract.reply_wait_profile` (call before
+    ``rclpy.init``): the profile is written once to a file named by its content in the
+    temporary directory, and ``FASTRTPS_DEFAULT_PROFILES_FILE`` set to it in ``env``
+    (default ``os.environ``). A profiles file the user has set is kept (their file decides);
+    returns the file in use, or ``None`` when it is the user's."""
+    target = os.environ if env is None else env
+    if target.get(PROFILES_ENV):
+        return None
+    text = reply_wait_profile(services, wait_s)
+    digest = hashlib.sha256(text.encode()).hexdigest()[:16]
+    path = os.path.join(tempfile.gettempdir(), f"dvt-fastdds-reply-{digest}.xml")
+    if not os.path.exists(path):
+        fd, tmp = tempfile.mkstemp(prefix="dvt-fastdds-", suffix=".xml.part")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)  # atomic: a concurrent reader sees the whole file or none
+    target[PROFILES_ENV] = path
+    return path
+
+
+def init(args: list[str] | None = None, *, reply_wait: Sequence[str] = ()) -> list[str]:
+    """``rclpy.init`` without rclpy's own signal handlers; returns non-ROS args.
+
+    ``reply_wait``: services of this (not real-time) process whose replies wait
+    :data:`~dvt_model.contract.REPLY_WAIT_S` for a late client (:func:`use_reply_wait`).
+    """
+    if reply_wait:
+        use_reply_wait(reply_wait)
     argv = sys.argv if args is None else args
     rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     return list(rclpy.utilities.remove_ros_args(argv))

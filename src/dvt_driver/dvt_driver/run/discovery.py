@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
 
+from dvt_model.contract import reply_wait_writers
+
 DEFAULT_PORT = 11811
 """Fast DDS discovery server's default UDP port."""
 SERVER_EXE = "fast-discovery-server"
@@ -185,7 +187,9 @@ def client_profile_xml(servers: Sequence[Endpoint], super_client: bool = False,
     """A Fast DDS XML profile (``FASTRTPS_DEFAULT_PROFILES_FILE``) equivalent to
     :func:`server_env`, with a participant lease of ``lease_s`` seconds (a longer lease rides
     out WiFi drop-outs; the default is 20 s). Server ``i`` of ``servers`` has id ``i``.
-    Hosts must be IP addresses here."""
+    Hosts must be IP addresses here. The file also carries the identifier's reply wait
+    (:func:`dvt_model.contract.reply_wait_writers`): a profiles file set by the user replaces
+    the one the identifier would use."""
     if not servers:
         raise DiscoveryError("client_profile_xml: no discovery server given")
     if not lease_s > 0:
@@ -225,6 +229,7 @@ def client_profile_xml(servers: Sequence[Endpoint], super_client: bool = False,
         "        </builtin>\n"
         "      </rtps>\n"
         "    </participant>\n"
+        + reply_wait_writers() +
         "  </profiles>\n"
         "</dds>\n")
 
