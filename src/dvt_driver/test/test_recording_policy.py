@@ -31,14 +31,18 @@ def test_choose_qos() -> None:
 
 
 def test_recorder_stop_flag_turns_signals_into_a_flag() -> None:
+    # the handler before: Python's default_int_handler, or SIG_IGN when the suite was started
+    # with SIGINT ignored (a non-interactive shell's background job, `nohup cmd &`)
+    before = signal.getsignal(signal.SIGINT)
     flag = StopFlag().install()
     try:
         assert not flag
+        assert signal.getsignal(signal.SIGINT) is flag
         signal.raise_signal(signal.SIGINT)  # no KeyboardInterrupt
         assert flag and flag.received == signal.SIGINT
     finally:
         flag.restore()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 def test_default_topics_are_the_contracts() -> None:
