@@ -83,11 +83,14 @@ def cart_record() -> Callable[..., Segment]:
 
 SLIDE_PARAMS = {"M": 2.0, "Fv": 3.0}
 """The slide's mass [kg] and viscous friction [N s/m] (:func:`slide_record`)."""
+SLIDE_PRIORS = {"M": 1.2, "Fv": 4.5, "Fc": 0.5}
+"""Where the slide's fits start: mass and viscous friction 40 % and 50 % off the truth, the dry
+friction half the records' 1 N (no prior equals the simulated truth)."""
 
 
 def _slide_desc() -> Description:
     """A slide ``M v' = F - Fv v - Fc sign(v)`` with one candidate, Coulomb friction with an
-    offset (``Fc`` [N], offset [N]); priors M 2, Fv 3."""
+    offset (``Fc`` [N], offset [N]); priors :data:`SLIDE_PRIORS`, off the truth."""
     return parse_description({
         "name": "slide",
         "inputs": [{"name": "force", "topic": "/s/drive", "field": "effort", "joint": "c"}],
@@ -95,8 +98,8 @@ def _slide_desc() -> Description:
                      "joint": "c"}],
         "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
                       "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
-                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
+                      "parameters": {"M": {"initial": SLIDE_PRIORS["M"], "lower": 0.01},
+                                     "Fv": {"initial": SLIDE_PRIORS["Fv"], "lower": 0.0}}},
         "candidates": [{"effect": "coulomb_friction", "where": "v", "offset": True,
                         "eps": 0.01}],
     }, "slide.yaml")
@@ -128,6 +131,16 @@ def slide_record() -> Callable[..., tuple[Segment, OEModel]]:
     """``slide_record(seed, fc=1.0, bias=0.0, n=4000, friction=True)``: a record of the slide
     with dry friction and the model that made it (the toy of the records' disagreement)."""
     return _slide_record
+
+
+@pytest.fixture(scope="session")
+def slide_start() -> Callable[[bool], np.ndarray]:
+    """``slide_start(friction=True)``: the slide fit's start, (M, Fv[, Fc, offset]) from
+    :data:`SLIDE_PRIORS`."""
+    def start(friction: bool = True) -> np.ndarray:
+        head = [SLIDE_PRIORS["M"], SLIDE_PRIORS["Fv"]]
+        return np.array(head + ([SLIDE_PRIORS["Fc"], 0.0] if friction else []))
+    return start
 
 
 @pytest.fixture

@@ -11,14 +11,15 @@ from dvt_identify.disagree import compare_records
 from dvt_identify.fit import OEFit
 
 
-def _fit(seg, model):
-    return OEFit(model, starts=1, theta0=np.array([2.0, 3.0, 1.0, 0.0])).fit([seg])
+def _fit(seg, model, start):
+    return OEFit(model, starts=1, theta0=start).fit([seg])
 
 
-def test_a_friction_higher_in_the_test_record_is_detected_and_read_as_friction(slide_record):
+def test_a_friction_higher_in_the_test_record_is_detected_and_read_as_friction(
+        slide_record, slide_start):
     est, model = slide_record(1, fc=1.0)
     test, _ = slide_record(2, fc=1.3)
-    ag = compare_records(_fit(est, model), [est], test=[test], unit="N")
+    ag = compare_records(_fit(est, model, slide_start()), [est], test=[test], unit="N")
     assert ag.disagree, ag.statement
     assert ag.test.labels == ["force +", "force -"]
     # bias(+) = -dFc, bias(-) = +dFc with dFc = 0.3 N: within 4 of their standard errors
@@ -28,9 +29,9 @@ def test_a_friction_higher_in_the_test_record_is_detected_and_read_as_friction(s
     assert re.search(r"a dry friction \+0\.(29|30|31)\d* N", ag.statement), ag.statement
 
 
-def test_records_of_the_same_plant_agree(slide_record):
+def test_records_of_the_same_plant_agree(slide_record, slide_start):
     est, model = slide_record(1, fc=1.0)
     test, _ = slide_record(3, fc=1.0)
-    ag = compare_records(_fit(est, model), [est], [test], unit="N")
+    ag = compare_records(_fit(est, model, slide_start()), [est], [test], unit="N")
     assert not ag.disagree, ag.statement
     assert ag.statement.startswith("The test record agrees")

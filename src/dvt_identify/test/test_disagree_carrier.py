@@ -17,9 +17,9 @@ W = 200
 
 
 @pytest.fixture(scope="module")
-def fitted(slide_record):
+def fitted(slide_record, slide_start):
     est, model = slide_record(1)
-    fit = OEFit(model, starts=1, theta0=np.array([2.0, 3.0, 1.0, 0.0]), init_window=W)
+    fit = OEFit(model, starts=1, theta0=slide_start(), init_window=W)
     return est, fit.fit([est])
 
 
@@ -62,12 +62,13 @@ def test_the_bias_comes_from_the_window_alone(fitted, slide_record):
         np.testing.assert_array_equal(a.x0, b.x0)
 
 
-def test_a_bias_that_changes_within_the_estimation_record_gets_a_carrier_chosen(slide_record):
+def test_a_bias_that_changes_within_the_estimation_record_gets_a_carrier_chosen(
+        slide_record, slide_start):
     # the linear slide: a friction in the model would absorb part of the changing bias
     n = 4000
     steps = np.repeat([0.0, 0.6, -0.4, 0.3, -0.5], n // 5)
     est, model = slide_record(4, bias=steps, n=n, friction=False)
-    fit = OEFit(model, starts=1, theta0=np.array([2.0, 3.0]), init_window=W)
+    fit = OEFit(model, starts=1, theta0=slide_start(friction=False), init_window=W)
     fit.fit([est])
     choice = choose_carrier(fit, [est], W, blocks=5)
     # the constant carrier or the one per direction (more freedom for a model the changing

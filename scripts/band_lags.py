@@ -1,0 +1,105 @@
+"""Each band's gain and engagement lag as the identifier's baseline fits them, at a chosen fit
+decimation (the figures of ``docs/identification.md`` on the band lags).
+
+Records the shift-rich experiment (``ident_shifts``) offline on the plant preset ``bands`` as
+``tests/test_band_spread.py`` does (estimation seed 31, validation 131; ``--draw`` another
+plant), identifies the ``dvt`` description's baseline (no candidate) with ``preprocess.
+fit_decimate`` replaced by each ``--fit-decimate`` given (0: the description's own, ``auto``),
+and prints per band the plant's value, the estimate and its reported std. ``--own-model``
+then also replaces the fitted outputs by the identifier's own model at the plant's band values
+(the other parameters as fitted, Gaussian noise of the fit's residual size per output, seed 5)
+and refits from the same starts on the same grid: does the fit find the lag its model has?
+The fit at 1 kHz (``--fit-decimate 1``) takes about 7 minutes on one core, the default (5)
+about 2.
+
+Usage::
+
+    .venv/bin/python scripts/band_lags.py [--fit-decimate 0 2 1] [--draw SEED] [--own-model]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from dvt_driver.plant.hidden import load_hidden
+from dvt_driver.plant.offline import record_offline
+from dvt_driver.run.experiment_core import build
+from dvt_identify import identifiability
+from dvt_identify.description import load_description
+from dvt_identify.fit import OEFit
+from dvt_identify.loop import LoopConfig, identify
+from dvt_identify.pipeline import load_segments
+from dvt_model.params import load_parameters
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--fit-decimate", type=int, nargs="+", default=[0])
+    ap.add_argument("--draw", type=int, default=None, help="plant draw seed (default: fixed)")
+    ap.add_argument("--own-model", action="store_true",
+                    help="also refit on the identifier's own model at the plant's band values")
+    a = ap.parse_args()
+    seed = 31 if a.draw is None else a.draw
+    hidden = load_hidden("bands", draw=a.draw)
+    if hidden.bands is None or hidden.bands.gain is None or hidden.bands.time_constant is None:
+        print("band_lags: the preset 'bands' drew no band values", file=sys.stderr)
+        return 1
+    params = load_parameters("physical")
+    tmp = Path(tempfile.mkdtemp(prefix="dvt-band-lags-"))
+    est = record_offline(tmp / "est", build("ident_shifts", seed=seed), params, hidden,
+                         seed=seed)
+    val = record_offline(tmp / "val", build("ident_shifts", seed=seed + 100), params, hidden,
+                         seed=seed + 100)
+    desc0 = load_description("dvt")
+    e, v = load_segments([est], desc0), load_segments([val], desc0)
+    chk = identifiability.check(desc0, e)
+    desc = identifiability.apply(desc0, chk)
+    for q in a.fit_decimate:
+        cfg = LoopConfig.from_options(desc.fit, q if q > 0 else desc.preprocess.fit_decimate)
+        r = identify(e, v, desc, dataclasses.replace(cfg, max_effects=0), check=chk)
+        fit = r.baseline.fit
+        truth = {}
+        for k in (1, 2, 3):
+            truth[f"band_gain_ring{k}"] = hidden.bands.gain[k - 1]
+            truth[f"band_time_constant_brake{k}"] = hidden.bands.time_constant[k - 1]
+        _show(f"fit_decimate {q or 'auto'}: fit step {r.fit_dt * 1e3:g} ms", fit, truth)
+        if a.own_model:
+            _show("  the same fit on the identifier's own model at the plant's band values",
+                  _refit_on_own_model(fit, truth), truth)
+    return 0
+
+
+def _show(title: str, fit: OEFit, truth: dict[str, float]) -> None:
+    p, sd = fit.parameters(), fit.parameter_std()
+    print(title)
+    for name, t in truth.items():
+        off = (p[name] - t) / sd[name] if sd[name] > 0 else float("inf")
+        print(f"  {name:28s} plant {t:.4g}  fit {p[name]:.4g} +- {sd[name]:.2g}"
+              f"  ({off:+.1f} std)", flush=True)
+
+
+def _refit_on_own_model(fit: OEFit, truth: dict[str, float]) -> OEFit:
+    """``fit`` repeated on its segments with the outputs its model gives at ``truth`` (the
+    other parameters as fitted) plus noise of the fit's residual size."""
+    m = fit.model
+    theta = np.array(fit.theta_, dtype=float)
+    for name, value in truth.items():
+        theta[list(m.names).index(name)] = value
+    rng = np.random.default_rng(5)
+    segs = []
+    for seg, x0 in zip(fit.segments_, fit.x0_, strict=True):
+        sd = np.nanstd(seg.y - m.simulate(fit.theta_, seg, x0), axis=0)
+        y = m.simulate(theta, seg, x0) + rng.standard_normal(seg.y.shape) * sd
+        segs.append(dataclasses.replace(seg, y=y))
+    return copy.copy(fit).fit(segs)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
