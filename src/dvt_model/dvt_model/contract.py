@@ -59,6 +59,10 @@ SRV_DRIVER_RELEASE_BRAKES = "/dvt/driver/release_brakes"
 IDENTIFY_REQUEST = "/dvt/identify/request"
 IDENTIFY_RESULT = "/dvt/identify/result"
 SRV_IDENTIFY_RUN = "/dvt/identify/run"
+FASTDDS_PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
+"""Fast DDS 2.x (the Jazzy wheels) reads its XML profiles from the file this variable names."""
+FASTDDS_XML_NS = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
+"""The XML namespace of a Fast DDS profiles document."""
 REPLY_WAIT_S = 2.0
 """How long a service of a node that is not real-time (the identifier) waits for the client's
 response reader to be matched before it drops the reply, s (``rmw_fastrtps`` waits the response
@@ -146,7 +150,7 @@ def reply_wait_profile(services: Sequence[str] = REPLY_WAIT_SERVICES,
         ContractError: as :func:`reply_wait_writers`.
     """
     return ('<?xml version="1.0" encoding="UTF-8"?>\n'
-            '<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+            f'<dds xmlns="{FASTDDS_XML_NS}">\n'
             f"  <profiles>\n{reply_wait_writers(services, wait_s)}  </profiles>\n</dds>\n")
 
 

@@ -31,18 +31,18 @@ from sensor_msgs.msg import JointState
 from dvt_model.contract import (
     COMMAND_QOS as _COMMAND_QOS_SPEC,
 )
+from dvt_model.contract import FASTDDS_PROFILES_ENV, REPLY_WAIT_S, QosSpec, reply_wait_profile
 from dvt_model.contract import (
     LATCHED_QOS as _LATCHED_QOS_SPEC,
 )
-from dvt_model.contract import REPLY_WAIT_S, QosSpec, reply_wait_profile
 from dvt_model.contract import (
     SENSOR_QOS as _SENSOR_QOS_SPEC,
 )
 
 __all__ = ["COMMAND_QOS", "LATCHED_QOS", "SENSOR_QOS", "qos"]
 
-PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
-"""Fast DDS 2.x (the Jazzy wheels) reads its XML profiles from the file this names."""
+PROFILES_ENV = FASTDDS_PROFILES_ENV
+"""Fast DDS's profiles-file variable (:data:`dvt_model.contract.FASTDDS_PROFILES_ENV`)."""
 
 
 def qos(spec: QosSpec) -> QoSProfile:

@@ -33,13 +33,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
 
-from dvt_model.contract import reply_wait_writers
+from dvt_model.contract import FASTDDS_PROFILES_ENV, FASTDDS_XML_NS, reply_wait_writers
 
 DEFAULT_PORT = 11811
 """Fast DDS discovery server's default UDP port."""
 SERVER_EXE = "fast-discovery-server"
 DISCOVERY_VARS = ("ROS_DISCOVERY_SERVER", "ROS_STATIC_PEERS", "ROS_SUPER_CLIENT",
-                  "ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTRTPS_DEFAULT_PROFILES_FILE")
+                  "ROS_AUTOMATIC_DISCOVERY_RANGE", FASTDDS_PROFILES_ENV)
 """Environment variables the settings here may set."""
 
 
@@ -213,7 +213,7 @@ def client_profile_xml(servers: Sequence[Endpoint], super_client: bool = False,
     protocol = "SUPER_CLIENT" if super_client else "CLIENT"
     return (
         '<?xml version="1.0" encoding="UTF-8" ?>\n'
-        '<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+        f'<dds xmlns="{FASTDDS_XML_NS}">\n'
         "  <profiles>\n"
         '    <participant profile_name="dvt_discovery_client" is_default_profile="true">\n'
         "      <rtps>\n"
