@@ -74,6 +74,25 @@ def test_use_reply_wait_writes_the_profile_and_keeps_a_users_file(tmp_path: Path
     own = {rosutil.PROFILES_ENV: str(tmp_path / "mine.xml")}
     assert rosutil.use_reply_wait([SRV_IDENTIFY_RUN], env=own) is None
     assert own == {rosutil.PROFILES_ENV: str(tmp_path / "mine.xml")}
+    note = rosutil.users_profile_note([SRV_IDENTIFY_RUN], str(tmp_path / "mine.xml"))
+    for part in (str(tmp_path / "mine.xml"), SRV_IDENTIFY_RUN, f"{REPLY_WAIT_S:g} s",
+                 "100 ms", "dvt-discovery xml"):
+        assert part in note, (part, note)
+
+
+def test_a_process_with_the_users_file_says_its_replies_keep_100_ms(tmp_path: Path) -> None:
+    """``rosutil.init(reply_wait=...)`` under the user's own profiles file warns, naming the
+    file and the service (the user's file decides, silently before)."""
+    mine = tmp_path / "mine.xml"
+    mine.write_text(reply_wait_profile(["/other"], 0.5))
+    env = {**os.environ, rosutil.PROFILES_ENV: str(mine)}
+    code = ("import rclpy; from dvt_model import rosutil; "
+            f"rosutil.init(['x'], reply_wait=[{SRV_IDENTIFY_RUN!r}]); rclpy.shutdown()")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert str(mine) in out.stderr and SRV_IDENTIFY_RUN in out.stderr, out.stderr
+    assert "WARN" in out.stderr, out.stderr
 
 
 SERVER = r'''

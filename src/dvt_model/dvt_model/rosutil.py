@@ -167,14 +167,29 @@ def use_reply_wait(services: Sequence[str], wait_s: float = REPLY_WAIT_S,
     return path
 
 
+def users_profile_note(services: Sequence[str], path: str) -> str:
+    """What a process logs when the user's profiles file ``path`` replaces the reply-wait
+    profile of ``services`` (:func:`use_reply_wait` keeps the user's file): the file, the
+    services, the wait they lose and where to get the block that restores it."""
+    return (f"{PROFILES_ENV}={path} is the user's own Fast DDS profiles file, kept: the "
+            f"replies of {', '.join(services)} wait Fast DDS's default 100 ms for a late "
+            f"client instead of {REPLY_WAIT_S:g} s (a late client then loses the reply); "
+            f"add the <data_writer> block that `dvt-discovery xml` prints to that file")
+
+
 def init(args: list[str] | None = None, *, reply_wait: Sequence[str] = ()) -> list[str]:
     """``rclpy.init`` without rclpy's own signal handlers; returns non-ROS args.
 
     ``reply_wait``: services of this (not real-time) process whose replies wait
-    :data:`~dvt_model.contract.REPLY_WAIT_S` for a late client (:func:`use_reply_wait`).
+    :data:`~dvt_model.contract.REPLY_WAIT_S` for a late client (:func:`use_reply_wait`);
+    when the user's own profiles file is kept instead, a warning says so
+    (:func:`users_profile_note`).
     """
-    if reply_wait:
-        use_reply_wait(reply_wait)
+    kept = None
+    if reply_wait and use_reply_wait(reply_wait) is None:
+        kept = users_profile_note(reply_wait, os.environ.get(PROFILES_ENV, ""))
     argv = sys.argv if args is None else args
     rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    if kept is not None:
+        rclpy.logging.get_logger("dvt.rosutil").warning(kept)
     return list(rclpy.utilities.remove_ros_args(argv))
