@@ -40,8 +40,6 @@ from dvt_driver.system.bench_loop import (
 )
 from dvt_model.detect import DetectorConfig
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
-
 CLEAN_S = 150.0
 """Clean testing the run must reach [s] (after the re-arm, the settling and the reference)."""
 LEARN_S = 10.0
@@ -70,6 +68,8 @@ def test_the_allowed_count_follows_the_design() -> None:
     assert poisson.sf(allowed_false_alarms(210.0), 210.0 / (4 * 3600.0)) < MISS_P
 
 
+@pytest.mark.ros
+@pytest.mark.slow
 def test_minutes_of_a_clean_plant_raise_no_more_alarms_than_the_design(procs: Procs,
                                                                        tmp_path: Path) -> None:
     logdir = tmp_path / "run"

@@ -352,16 +352,20 @@ def structure_at_bounds(result: IdentificationResult, stage: str = "final") -> l
     return out
 
 
-def model_push(result: IdentificationResult) -> Push:
+def model_push(result: IdentificationResult, held: Mapping[str, float] | None = None) -> Push:
     """The model node's parameters for the result's final model (the description's model
-    effects, as kept, are the node's band model).
+    effects, as kept, are the node's band model; ``held``: structure values the fit held,
+    :func:`dvt_identify.push.model_node_parameters`). The band values are pushed only when
+    they predict the result's validation segments better than the values the fit started
+    from (:func:`dvt_identify.push.band_check`).
 
     Raises:
         PushError: not the DVT structure, or a value the node would refuse.
     """
     n_model = len(result.description.make_model_effects())
     return model_node_parameters(result.final, n_model,
-                                 input_joints=[s.joint for s in result.description.inputs])
+                                 input_joints=[s.joint for s in result.description.inputs],
+                                 held=held, validation=result.val_segments or None)
 
 
 class TerminalProgress:

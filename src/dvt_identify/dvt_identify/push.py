@@ -37,7 +37,11 @@ An effect is pushed whole or not at all. The baseline's band brakes (``brake_loc
 ``band_gain_*`` [N m/A] and ``brake_engagement`` ``band_time_constant_*`` [s] on the inputs
 ``brake1..3``) map to the node's ``band_gain`` and ``band_time_constant`` (the name each
 effect declares as its ``band_parameter``) when all three bands were identified and the data
-determined each value (relative standard deviation at most :data:`MAX_RELATIVE_STD`).
+determined each value (relative standard deviation at most :data:`MAX_RELATIVE_STD`) and,
+when validation segments are given, the fitted band values predict them better than the
+values the fit started from (the description's, or the model in use's for a refit from it):
+the linearised standard deviation does not see the gain-lag ridge of a band engaged once or
+twice, a held-out prediction does (:func:`band_check`).
 
 Every term is checked with :func:`dvt_model.contract.validate_term` /
 :func:`~dvt_model.contract.validate_effects` and the whole push with
@@ -59,10 +63,13 @@ from typing import Any
 
 import numpy as np
 
+from dvt_identify.data import Segment
 from dvt_identify.effects import Effect, Term
 from dvt_identify.effects.base import SegmentView
 from dvt_identify.effects.position import ANGLE_FROM_POSITION, angle_of
 from dvt_identify.errors import PushError
+from dvt_identify.fit import OEFit
+from dvt_identify.metrics import figures
 from dvt_identify.stages import Stage
 from dvt_model.config import check_parameters
 from dvt_model.contract import CURRENT_NAMES, SPEED_NAMES, term_needs_angle, validate_effects
@@ -94,7 +101,8 @@ class Push:
 
 def model_node_parameters(stage: Stage, n_model_effects: int = 0,
                           input_joints: Sequence[str] | None = None,
-                          held: Mapping[str, float] | None = None) -> Push:
+                          held: Mapping[str, float] | None = None,
+                          validation: Sequence[Segment] | None = None) -> Push:
     """Build the model node's parameters from a fitted stage.
 
     Args:
@@ -111,6 +119,8 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0,
             ``M11..D22`` of the model in use when the supervisor's refit held the structure,
             :func:`dvt_identify.supervisor.held_description`); a fitted value of the same
             name wins.
+        validation: held-out segments (the identification's validation data); given, the
+            band values are pushed only when :func:`band_check` confirms them on these.
 
     Raises:
         PushError: the structure has no M and D entries (not the DVT mechanical one), the
@@ -135,6 +145,12 @@ def model_node_parameters(stage: Stage, n_model_effects: int = 0,
     pairs = list(zip(model.effects, params, strict=True))
     out: dict[str, Any] = {"M": [float(v) for v in M], "D": [float(v) for v in D]}
     bands, skipped = _band_parameters(pairs[:n_model_effects], inputs, std)
+    if bands and validation:
+        why = band_check(fit, [e.params[0].name for e, _ in pairs[:n_model_effects]
+                               if e.band_parameter in bands], validation)
+        if why:
+            skipped.append(f"{', '.join(sorted(bands))} ({why})")
+            bands = {}
     out.update(bands)
     segments = list(getattr(fit, "segments_", None) or [])
     ctx = _Mapping(outputs=outputs, order=_speed_order(outputs),
@@ -364,6 +380,41 @@ def _band_parameters(pairs: Sequence[tuple[Effect, Any]], inputs: list[str],
                            "gain and lag are determined together)")
         out = {}
     return out, skipped
+
+
+def band_check(fit: OEFit, names: Sequence[str], validation: Sequence[Segment]) -> str:
+    """Whether the fitted band values ``names`` (parameters of ``fit.model``) predict the
+    held-out ``validation`` segments better than the values the fit started from (each
+    parameter's ``initial``: the description's, or the model in use's for a refit started
+    from it), every other parameter at its fitted value: what the model node runs when the
+    band values are pushed, against what it runs when they are not.
+
+    Each simulation starts from the state that best fits its segment
+    (:meth:`~dvt_identify.fit.OEFit.estimate_x0`, or the initial window). The criterion is the
+    identifier's validation loss ``det(E^T E / N)`` (:func:`dvt_identify.metrics.figures`).
+
+    Returns:
+        ``""`` when the fitted values predict better (or equal the start values), else the
+        reason, with both losses.
+    """
+    model = fit.model
+    theta = np.asarray(fit.theta_, float)
+    start = theta.copy()
+    for name in names:
+        i = model.names.index(name)
+        start[i] = model.specs[i].initial
+    if np.array_equal(start, theta):
+        return ""
+
+    def loss(th: np.ndarray) -> float:
+        preds = [model.simulate(th, s, fit.estimate_x0(s, th)) for s in validation]
+        return figures([s.y for s in validation], preds, 0, model.output_names).loss
+
+    fitted, started = loss(theta), loss(start)
+    if math.isfinite(fitted) and fitted < started:
+        return ""
+    return (f"the fitted band values predict the validation data worse than the start values: "
+            f"loss {fitted:.4g} against {started:.4g}")
 
 
 def _check(values: dict[str, Any]) -> None:

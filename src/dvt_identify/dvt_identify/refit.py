@@ -218,7 +218,6 @@ def refit(snapshot: str | Path, request: RequestFit, current: Mapping[str, Any],
     from dvt_identify.errors import DvtIdentifyError
     from dvt_identify.pipeline import model_initial, model_push, structure_at_bounds
     from dvt_identify.pipeline import run as run_pipeline
-    from dvt_identify.push import model_node_parameters
     from dvt_model.errors import DvtModelError
     from dvt_model.recording import read_run, write_run
 
@@ -275,12 +274,7 @@ def refit(snapshot: str | Path, request: RequestFit, current: Mapping[str, Any],
         summary["final_fit_percent"] = dict(zip(
             result.final.val.output_names, result.final.val.fit_percent, strict=True))
         summary["accepted"] = [d.score.label for d in result.accepted]
-        if held:  # pipeline.model_push with the held structure values
-            push = model_node_parameters(
-                result.final, len(result.description.make_model_effects()),
-                input_joints=[sig.joint for sig in result.description.inputs], held=held)
-        else:
-            push = model_push(result)
+        push = model_push(result, held=held or None)
         summary["not_pushed"] = push.skipped
         new = {**cur, **push.parameters}
         summary["changed"] = changes(cur, push.parameters)

@@ -1,5 +1,6 @@
 """Forms of the compliant-play (``backlash``, ``compliant: true``) and engagement dead-time
-(``brake_engagement``, ``dead_time: true``) candidates: null = baseline exactly, shapes, checks."""
+(``brake_engagement``, ``dead_time: true``) candidates: null = baseline exactly, shapes, checks;
+and the engagement lag's held value (the model node's)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 
 from dvt_identify.effects import (
+    BrakeEngagement,
     CompliantOutputBacklash,
     EngagementDeadTime,
     SegmentView,
@@ -14,6 +16,7 @@ from dvt_identify.effects import (
 )
 from dvt_identify.errors import DescriptionError
 from dvt_identify.simloop import spline_load, spline_load_py
+from dvt_model.brake import capacity_step
 
 STATES = ("sun_shaft", "carrier3")
 INPUTS = ("motor", "brake1", "brake2", "brake3")
@@ -153,3 +156,33 @@ def test_shared_dead_time_checks_its_inputs() -> None:
     with pytest.raises(DescriptionError, match="'brake7' is not an input"):
         make_effect("brake_engagement", "brakes", STATES, INPUTS,
                     options={"dead_time": True, "inputs": ["brake1", "brake7"]})
+
+
+@pytest.mark.parametrize("dt", [1e-3, 5e-3, 0.02])
+def test_engagement_lag_holds_the_model_nodes_step_mean(dt: float) -> None:
+    """The lagged brake input held over each step is the capacity's mean over that step, as
+    the model node and the plant hold it (``capacity_step``), not its value at the step
+    start (half a step late: the fit shortened the lag by that)."""
+    e = make_effect("brake_engagement", "brake1", STATES, INPUTS)
+    assert isinstance(e, BrakeEngagement)
+    tau = 0.015
+    rng = np.random.default_rng(3)
+    u = np.zeros((200, 4))
+    u[:, 1] = np.repeat(rng.uniform(-0.2, 1.0, 20), 10)  # held levels, negative ones too
+    u[:, 3] = rng.normal(size=200)
+    out = e.input_transform(np.array([tau]), u, dt)
+    assert out is not None
+    np.testing.assert_array_equal(out[:, [0, 2, 3]], u[:, [0, 2, 3]])
+    cap = np.full(3, u[0, 1])
+    means = []
+    for k in range(200):
+        cap, mean = capacity_step(cap, np.full(3, u[k, 1]), dt, tau)
+        means.append(mean[0])
+    np.testing.assert_allclose(out[:, 1], means, rtol=0, atol=1e-12)
+    # the step-start value differs by about half a step's rise where the input steps
+    start = u[0, 1]
+    k = int(np.flatnonzero(np.diff(u[:, 1]))[0]) + 1
+    jump = u[k, 1] - start
+    assert abs(out[k, 1] - start) == pytest.approx(abs(jump) * (1 - tau / dt
+                                                                * -np.expm1(-dt / tau)),
+                                                   rel=1e-9)

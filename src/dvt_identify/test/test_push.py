@@ -26,7 +26,8 @@ def _stage(effects, values, rel_std=0.01):  # type: ignore[no-untyped-def]
     rel = rel_std if isinstance(rel_std, dict) else {}
     std = {n: abs(float(v)) * rel.get(n, 0.01 if rel else rel_std)
            for n, v in zip(model.names, theta, strict=True)}
-    fit = SimpleNamespace(model=model, theta_=theta, parameter_std=lambda: std)
+    fit = SimpleNamespace(model=model, theta_=theta, parameter_std=lambda: std,
+                          estimate_x0=lambda seg, th=None: np.zeros(model.nx))
     return SimpleNamespace(fit=fit, parameters=lambda: model.parameters(theta)), desc
 
 
@@ -122,3 +123,68 @@ def test_a_mass_matrix_the_node_would_refuse_raises() -> None:
     stage, _ = _stage([], {"M11": 1e-3, "M12": 0.5, "M22": 1e-3})  # not positive definite
     with pytest.raises(PushError, match="M"):
         model_node_parameters(stage)  # type: ignore[arg-type]
+
+
+def _band_run(desc, model, theta, seed=0):  # type: ignore[no-untyped-def]
+    """A 20-s run at 5 ms of ``model`` at ``theta`` (each band engaged four times, the motor
+    current a few sines), with 1 % noise: a segment whose bands the data determine."""
+    from dvt_identify.data import Segment
+
+    dt, n = 0.005, 4000
+    t = np.arange(n) * dt
+    u = np.zeros((n, 4))
+    u[:, 0] = 2.0 + 1.5 * np.sin(2 * np.pi * 0.7 * t) + 0.8 * np.sin(2 * np.pi * 2.3 * t)
+    band = (np.floor(t / 1.25).astype(int) % 4)  # 0: neutral, 1..3: band b engaged
+    for b in (1, 2, 3):
+        u[:, b] = np.where(band == b, 1.0, 0.0)
+    seg = Segment(name="bands", t=t, u=u, y=np.zeros((n, 2)), input_names=desc.input_names,
+                  output_names=desc.output_names, dt=dt)
+    y = model.simulate(theta, seg, np.zeros(2))
+    rng = np.random.default_rng(seed)
+    y = y + 0.01 * np.std(y, axis=0) * rng.standard_normal(y.shape)
+    return Segment(name="bands", t=t, u=u, y=y, input_names=desc.input_names,
+                   output_names=desc.output_names, dt=dt)
+
+
+def test_band_values_are_pushed_only_when_they_predict_held_out_data_better() -> None:
+    from dvt_identify.push import band_check
+
+    desc = load_description("dvt")
+    bands = desc.make_model_effects()
+    names = [e.params[0].name for e in bands]
+    model = OEModel(desc.structure, bands)
+    truth = model.initial()
+    plant = {}
+    for e in bands:  # a plant off the description's band values (8 N m/A, 20 ms)
+        band = int(desc.input_names[e.index][-1])
+        v = (5.5 + band) if isinstance(e, BrakeLockup) else 0.01 + 0.01 * band
+        truth[model.names.index(e.params[0].name)] = plant[e.params[0].name] = v
+    held_out = [_band_run(desc, model, truth, seed=1)]
+
+    def fit(m, theta):  # type: ignore[no-untyped-def]
+        return SimpleNamespace(model=m, theta_=theta,
+                               estimate_x0=lambda seg, th: np.zeros(2))
+    # the fitted values are the plant's, the start the description's: confirmed
+    assert band_check(fit(model, truth), names, held_out) == ""  # type: ignore[arg-type]
+    # the fit started at the plant's values and moved along the ridge: refused, with losses
+    started = OEModel(desc.with_initial(plant).structure, desc.with_initial(plant)
+                      .make_model_effects())
+    ridge = truth.copy()
+    for e in bands:
+        i = model.names.index(e.params[0].name)
+        ridge[i] *= 4.0  # gain and lag alike: the same initial slope, a slower rise
+    why = band_check(fit(started, ridge), names, held_out)  # type: ignore[arg-type]
+    assert why.startswith("the fitted band values predict the validation data worse than "
+                          "the start values: loss "), why
+    # start values equal to the fitted ones: nothing to compare, nothing refused
+    assert band_check(fit(started, truth), names, held_out) == ""  # type: ignore[arg-type]
+    # the push applies it: the plant's values are pushed, values off the ridge are not
+    stage, _ = _stage(bands, plant)
+    push = model_node_parameters(stage, len(bands), validation=held_out)  # type: ignore[arg-type]
+    np.testing.assert_allclose(push.parameters["band_gain"], [6.5, 7.5, 8.5])
+    stage, _ = _stage(bands, {k: 4.0 * v for k, v in plant.items()})
+    push = model_node_parameters(stage, len(bands), validation=held_out)  # type: ignore[arg-type]
+    assert "band_gain" not in push.parameters and "band_time_constant" not in push.parameters
+    (line,) = push.skipped
+    assert line.startswith("band_gain, band_time_constant (the fitted band values predict "
+                           "the validation data worse than the start values: loss "), line

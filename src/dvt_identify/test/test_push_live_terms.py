@@ -34,8 +34,8 @@ from dvt_driver.run.experiment_core import build
 from dvt_identify import identifiability
 from dvt_identify.description import load_description
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
-from dvt_identify.pipeline import load_segments
-from dvt_identify.push import Push, model_node_parameters
+from dvt_identify.pipeline import load_segments, model_push
+from dvt_identify.push import Push
 from dvt_model.config import build_predictor
 from dvt_model.contract import JOINT_STATES, SPEED_NAMES, term_needs_angle
 from dvt_model.params import load_parameters
@@ -63,8 +63,7 @@ def _identify(root: Path, preset: str, max_effects: int
     cfg = replace(LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate),
                   max_effects=max_effects)
     r = identify(est, val, desc, cfg, check=chk)
-    push = model_node_parameters(r.final, len(desc.make_model_effects()),
-                                 input_joints=[s.joint for s in desc.inputs])
+    push = model_push(r)
     return r, push, val_bag
 
 

@@ -63,10 +63,14 @@ FASTDDS_PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 """Fast DDS 2.x (the Jazzy wheels) reads its XML profiles from the file this variable names."""
 FASTDDS_XML_NS = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
 """The XML namespace of a Fast DDS profiles document."""
+FASTDDS_DEFAULT_REPLY_WAIT_S = 0.1
+"""Fast DDS's default ``max_blocking_time`` of a reliable writer, s: how long ``rmw_fastrtps``
+lets a service's reply wait for the client's response reader without a profile."""
 REPLY_WAIT_S = 2.0
 """How long a service of a node that is not real-time (the identifier) waits for the client's
 response reader to be matched before it drops the reply, s (``rmw_fastrtps`` waits the response
-writer's ``max_blocking_time``, 100 ms by default; :func:`dvt_model.rosutil.init`).
+writer's ``max_blocking_time``, :data:`FASTDDS_DEFAULT_REPLY_WAIT_S` by default;
+:func:`dvt_model.rosutil.init`).
 
 Budget, measured with ``scripts/service_lag.py`` (a fresh participant per call, through a
 discovery server across two network namespaces): the server had to wait for the reader in 4 of

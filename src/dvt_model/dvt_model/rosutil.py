@@ -31,7 +31,13 @@ from sensor_msgs.msg import JointState
 from dvt_model.contract import (
     COMMAND_QOS as _COMMAND_QOS_SPEC,
 )
-from dvt_model.contract import FASTDDS_PROFILES_ENV, REPLY_WAIT_S, QosSpec, reply_wait_profile
+from dvt_model.contract import (
+    FASTDDS_DEFAULT_REPLY_WAIT_S,
+    FASTDDS_PROFILES_ENV,
+    REPLY_WAIT_S,
+    QosSpec,
+    reply_wait_profile,
+)
 from dvt_model.contract import (
     LATCHED_QOS as _LATCHED_QOS_SPEC,
 )
@@ -172,7 +178,8 @@ def users_profile_note(services: Sequence[str], path: str) -> str:
     profile of ``services`` (:func:`use_reply_wait` keeps the user's file): the file, the
     services, the wait they lose and where to get the block that restores it."""
     return (f"{PROFILES_ENV}={path} is the user's own Fast DDS profiles file, kept: the "
-            f"replies of {', '.join(services)} wait Fast DDS's default 100 ms for a late "
+            f"replies of {', '.join(services)} wait Fast DDS's default "
+            f"{FASTDDS_DEFAULT_REPLY_WAIT_S * 1e3:g} ms for a late "
             f"client instead of {REPLY_WAIT_S:g} s (a late client then loses the reply); "
             f"add the <data_writer> block that `dvt-discovery xml` prints to that file")
 

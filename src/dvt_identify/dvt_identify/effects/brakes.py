@@ -23,6 +23,10 @@ class BrakeEngagement(Effect):
     """First-order engagement lag of one input: ``tau u_eff' = u - u_eff`` (exact ZOH steps).
 
     Parameter ``band_time_constant`` (``tau`` in [0, 10] s); ``u_eff`` starts at ``u[0]``.
+    The transformed input held over step ``k`` is ``u_eff``'s *mean* over that step, as the
+    model node and the plant hold the band capacity (:func:`dvt_model.brake.capacity_step`):
+    its value at the step start lags that mean by about half a step, and a fit then shortened
+    ``tau`` by that much (measured with ``scripts/band_lags.py``, docs/identification.md §2).
     As a candidate it adds a second lag stage (which the model node does not have).
     """
 
@@ -45,8 +49,11 @@ class BrakeEngagement(Effect):
 
         e = math.exp(-dt / tau)
         out = u.copy()
-        # u_eff[k+1] = e u_eff[k] + (1 - e) u[k], u_eff[0] = u[0] (compiled recursion)
-        out[:, self.index] = first_order_lag(np.ascontiguousarray(u[:, self.index]), e)
+        col = np.ascontiguousarray(u[:, self.index])
+        # u_eff[k+1] = e u_eff[k] + (1 - e) u[k], u_eff[0] = u[0] (compiled recursion); held:
+        # the step mean u[k] + (u_eff[k] - u[k]) (1 - e) tau / dt (capacity_step's mean)
+        start = first_order_lag(col, e)
+        out[:, self.index] = col + (start - col) * (-math.expm1(-dt / tau) * tau / dt)
         return out
 
     def time_constants(self, p: Array) -> tuple[float, ...]:
