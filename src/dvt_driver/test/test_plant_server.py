@@ -293,12 +293,31 @@ def test_scheduled_faults_truth_file_and_duration(tmp_path: Path,
     assert doc["plant"]["seed"] == 5 and doc["plant"]["sample_period_us"] == 1000
 
 
+def test_the_draw_is_apart_from_the_noise_seed(tmp_path: Path,
+                                               plants: Callable[..., Plant]) -> None:
+    """One actuator recorded twice: ``--draw`` sets the hidden magnitudes, ``--seed`` the
+    noise; two noise seeds with one draw are the same plant."""
+    docs = []
+    for seed in ("5", "6"):
+        truth = tmp_path / f"truth-{seed}.yaml"
+        plant = plants("--hidden", "coulomb", "--draw", "3", "--seed", seed,
+                       "--truth-out", str(truth), "--duration", "0.2")
+        _, err = plant.proc.communicate(timeout=WAIT)
+        assert plant.proc.returncode == 0, err
+        docs.append(yaml.safe_load(truth.read_text()))
+    assert docs[0]["hidden"] == docs[1]["hidden"] == load_hidden("coulomb", draw=3).to_mapping()
+    assert docs[0]["hidden"] != load_hidden("coulomb", draw=5).to_mapping()
+    assert [d["plant"]["seed"] for d in docs] == [5, 6]
+    assert all(d["hidden_draw"]["seed"] == 3 for d in docs)
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["--hidden", "nope"], "unknown hidden-effects preset 'nope'"),
     (["--params", "nope"], "unknown parameter set 'nope'"),
     (["--baud", "115200"], "1000 µs is shorter than one sample frame on a 115200 baud line"),
     (["--fault-corrupt", "1.5"], "--fault-corrupt: expected a probability 0..1, got 1.5"),
     (["--period-us", "10"], "expected 500..1000000 µs, got 10"),
+    (["--draw", "3", "--hidden-fixed"], "--draw 3 and --hidden-fixed: give one"),
 ])
 def test_bad_arguments_exit_2_with_a_message(tmp_path: Path, args: list[str],
                                              message: str) -> None:

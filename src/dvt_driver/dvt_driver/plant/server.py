@@ -511,8 +511,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", default="none",
                    help="hidden effects: preset name (none, coulomb, stribeck, windage, backlash, "
                         "delay, wet_brake, gravity_arm, mesh_ripple, position_friction) or YAML "
-                        "path (default none); a preset's distributions are drawn from --seed "
-                        "(a random draw without it), the draw written into --truth-out")
+                        "path (default none); a preset's distributions are drawn from --draw, "
+                        "else --seed (a random draw without either), the draw written into "
+                        "--truth-out")
+    p.add_argument("--draw", type=int, default=None,
+                   help="seed of the hidden magnitudes' draw, apart from --seed's noise: the "
+                        "same actuator recorded twice takes one --draw and two --seed")
     p.add_argument("--hidden-fixed", action="store_true",
                    help="use the preset's fixed draw (each distribution's 'fixed' value, the "
                         "nominal plant) instead of drawing it from the seed")
@@ -592,7 +596,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         params = load_parameters(args.params)
+        if args.hidden_fixed and args.draw is not None:
+            raise DvtDriverError(f"--draw {args.draw} and --hidden-fixed: give one (a drawn "
+                                 "plant or the preset's nominal one)")
         draw = None if args.hidden_fixed else (
+            args.draw if args.draw is not None else
             args.seed if args.seed is not None else random_draw())
         hidden = load_hidden(args.hidden, draw=draw)
         extra_changes = [c for text in args.change_at for c in parse_change_at(text)]

@@ -9,7 +9,9 @@ launcher and the identifier's node and plots with the identifier's style.
 2. **Record** (``run-est``, ``run-val``): ``dvt-launch sim`` starts the simulated plant (on a
    pseudo-terminal, with an *undeclared* Coulomb friction in it), the lifecycle driver, the
    model node (with the thesis's physics as its prior) and the recorder, and runs the
-   identification experiment twice (different seeds): estimation and validation recordings.
+   identification experiment twice on the same plant (one draw of its hidden magnitudes,
+   :data:`PLANT_DRAW`; different noise and experiment seeds): estimation and validation
+   recordings.
 3. **Identify and push**: a live model node and ``dvt_identify_node`` run; the validation run is
    replayed (residual *before*), the identifier is asked over its request topic to refit from
    the estimation bag, trace the residual and augment the model (report in ``identify/``); it
@@ -110,11 +112,18 @@ def model_replay(out: Path) -> dict[str, Any]:
     return summary
 
 
+PLANT_DRAW = 1
+"""The draw of the demo plant's hidden magnitudes (``dvt-plant --draw``; preset ``coulomb``:
+sun 0.0336 N m, carrier 3 0.128 N m): the estimation and the validation run record the same
+actuator, as a lab's two runs do (before, each run's noise seed drew its own plant)."""
+
+
 def _launch_record(out: Path, name: str, seed: int, hidden: str) -> Path:
     bag = out / name
     if bag.exists():
         shutil.rmtree(bag)
     cmd = [script("dvt-launch"), "sim", "--hidden", hidden, "--seed", str(seed),
+           f"--plant-arg=--draw={PLANT_DRAW}",
            "--experiment", "ident", "--experiment-seed", str(seed), "--record", str(bag),
            "--model-param", "params:=thesis", "--max-missing", "5",
            "--log-dir", str(out / "logs" / name)]
