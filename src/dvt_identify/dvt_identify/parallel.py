@@ -27,7 +27,7 @@ import os
 import pickle
 import threading
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import TypeVar
 
 from dvt_identify.errors import FitError
@@ -70,6 +70,35 @@ def _share(n_items: int, n_parts: int) -> list[list[int]]:
     return [list(range(k, n_items, n_parts)) for k in range(n_parts)]
 
 
+_INDEX = 4
+"""Bytes of one item index in the work queue's pipe (:class:`_Queue`)."""
+
+
+class _Queue:
+    """Item indices handed out one at a time to whichever process asks first: written into
+    a pipe before the forks, its write end closed, each process reading one index of
+    :data:`_INDEX` bytes per item (a pipe read of a few bytes is atomic between the processes
+    sharing it) until the pipe is empty. Used with costs (:func:`fork_map`): the items go out
+    costliest first, so a heavy item never waits behind light ones for a busy process."""
+
+    def __init__(self, order: Sequence[int]) -> None:
+        if len(order) * _INDEX > 60000:  # below a pipe's 64 KiB buffer: written at once
+            raise ValueError(f"{len(order)} items: too many for one work queue")
+        self.fd, wfd = os.pipe()
+        os.write(wfd, b"".join(int(i).to_bytes(_INDEX, "little") for i in order))
+        os.close(wfd)
+
+    def __iter__(self) -> Iterator[int]:
+        while True:
+            b = os.read(self.fd, _INDEX)
+            if len(b) < _INDEX:
+                return
+            yield int.from_bytes(b, "little")
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
 def _read_all(fd: int) -> bytes:
     chunks = []
     while True:
@@ -81,12 +110,13 @@ def _read_all(fd: int) -> bytes:
     return b"".join(chunks)
 
 
-def _fork_children(fn: Callable[[T], R], items: Sequence[T], parts: Sequence[list[int]]
-                   ) -> list[tuple[int, int, list[int]]]:
-    """Fork one child per part; each computes ``fn`` on its items and writes the pickled
-    results into its pipe. Returns ``(pid, read end, part)`` per child."""
+def _fork_children(fn: Callable[[T], R], items: Sequence[T],
+                   parts: Sequence[Iterable[int]]) -> list[tuple[int, int]]:
+    """Fork one child per part (a list of indices, or the shared :class:`_Queue`); each
+    computes ``fn`` on its items and writes the pickled ``(index, ok, result)`` into its pipe.
+    Returns ``(pid, read end)`` per child."""
     global _in_worker
-    children: list[tuple[int, int, list[int]]] = []
+    children: list[tuple[int, int]] = []
     for part in parts:
         r, wfd = os.pipe()
         pid = os.fork()
@@ -95,13 +125,13 @@ def _fork_children(fn: Callable[[T], R], items: Sequence[T], parts: Sequence[lis
             os.close(r)
             code = 0
             try:
-                out: list[tuple[bool, object]] = []
+                out: list[tuple[int, bool, object]] = []
                 for i in part:
                     try:
-                        out.append((True, fn(items[i])))
+                        out.append((i, True, fn(items[i])))
                     except Exception as exc:  # handed to the parent, raised there
                         exc.add_note("in a worker process:\n" + traceback.format_exc())
-                        out.append((False, exc))
+                        out.append((i, False, exc))
                         break
                 data = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
                 view = memoryview(data)
@@ -112,14 +142,16 @@ def _fork_children(fn: Callable[[T], R], items: Sequence[T], parts: Sequence[lis
             finally:
                 os._exit(code)
         os.close(wfd)
-        children.append((pid, r, part))
+        children.append((pid, r))
     return children
 
 
-def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = None
-             ) -> list[R]:
-    """``[fn(x) for x in items]``, the items shared round robin between this process and
-    forked children (module docstring). ``n_workers`` overrides :func:`workers`.
+def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = None,
+             costs: Sequence[float] | None = None) -> list[R]:
+    """``[fn(x) for x in items]``, the items shared between this process and forked children
+    (module docstring): round robin, or with ``costs`` (an estimate per item, any unit) taken
+    one at a time from a shared queue, costliest first (:class:`_Queue`): the processes end
+    together even when the estimates are rough. ``n_workers`` overrides :func:`workers`.
 
     Raises:
         Exception: the first exception ``fn`` raised, in item order.
@@ -129,7 +161,14 @@ def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = N
     w = min(workers() if n_workers is None else max(1, int(n_workers)), len(items))
     if w <= 1:
         return [fn(x) for x in items]
-    parts = _share(len(items), w)
+    queue: _Queue | None = None
+    if costs is not None:
+        if len(costs) != len(items):
+            raise ValueError(f"costs: expected {len(items)} values, got {len(costs)}")
+        queue = _Queue(sorted(range(len(items)), key=lambda j: (-float(costs[j]), j)))
+        parts: list[Iterable[int]] = [queue] * w
+    else:
+        parts = list(_share(len(items), w))
     # what this process holds is frozen out of the collector before the forks: a child never
     # finalises an object it inherited (a collected leftover of a C library, e.g. a ROS
     # context from an earlier test, segfaulted a forked child in its destructor)
@@ -147,15 +186,17 @@ def fork_map(fn: Callable[[T], R], items: Sequence[T], n_workers: int | None = N
                 results[i] = (False, exc)
                 break
     finally:
-        for pid, r, part in children:
+        for pid, r in children:
             data = _read_all(r)
             os.waitpid(pid, 0)
             try:
                 got = pickle.loads(data) if data else []
             except Exception:  # a truncated result is a lost worker
                 got = []
-            for i, res in zip(part, got, strict=False):
-                results[i] = res
+            for i, ok, val in got:
+                results[i] = (ok, val)
+        if queue is not None:
+            queue.close()
     out_all: list[R] = []
     for i in range(len(items)):
         if i not in results:

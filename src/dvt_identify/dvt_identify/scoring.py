@@ -249,8 +249,12 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
             progress(f"  score {best.label:<40s} R2 {100 * best.r2:7.3f} %  "
                      f"({time.monotonic() - t0:.1f} s)")
         return best
-    # the candidates are independent: shared between the cores, in order (dvt_identify.parallel)
-    scores = fork_map(score_one, list(candidates))
+    # the candidates are independent: shared between the cores (dvt_identify.parallel), by
+    # their cost: a simulation of every segment per variant and gain (a compliant play scans
+    # 80 variants where a Coulomb friction has one)
+    cands = list(candidates)
+    costs = [len(c.variants(view)) * max(1, len(c.gain_names())) for c in cands]
+    scores = fork_map(score_one, cands, costs=costs)
     scores.sort(key=lambda s: s.r2, reverse=True)
     return scores
 

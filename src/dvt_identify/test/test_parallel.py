@@ -25,6 +25,31 @@ def test_results_come_back_in_order_from_both_processes() -> None:
     assert parent in pids and len(pids) == 2  # one share here, the other in a child
 
 
+def test_with_costs_the_items_go_costliest_first_to_whoever_is_free() -> None:
+    """One slow item among quick ones: taken first, by one process, while the other takes
+    every quick one (round robin would put half of them behind it); results in item order."""
+    import time
+
+    costs = [1.0, 1.0, 1.0, 10.0, 1.0, 1.0, 1.0, 1.0]
+
+    def fn(k: int) -> tuple[int, int]:
+        time.sleep(1.0 if k == 3 else 0.01)
+        return k, os.getpid()
+    out = fork_map(fn, range(8), 2, costs=costs)
+    assert [k for k, _ in out] == list(range(8))
+    heavy = out[3][1]
+    assert all(pid != heavy for k, pid in out if k != 3), out
+    with pytest.raises(ValueError, match="costs: expected 8 values, got 2"):
+        fork_map(lambda k: k, range(8), 2, costs=[1.0, 2.0])
+    # an exception is still raised first in item order
+    def bad(k: int) -> int:
+        if k in (2, 5):
+            raise RuntimeError(f"item {k}")
+        return k
+    with pytest.raises(RuntimeError, match="item 2"):
+        fork_map(bad, range(8), 2, costs=costs)
+
+
 def test_an_exception_in_a_worker_is_raised_here_first_in_order() -> None:
     def fn(k: int) -> int:
         if k in (3, 4):
