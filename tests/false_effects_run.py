@@ -4,9 +4,11 @@ can run it).
 
 A case is a seed, a sample rate and a sensor-noise scale. The plant has no hidden effect; its
 physical parameters are drawn per seed (every member inertia times a log-uniform factor in
-[1/1.5, 1.5], every damping in [1/2, 2]: the identifier's priors, the thesis values, are then
-off), its sensors' noise scaled. Two independent runs of the ``ident`` experiment (its own
-experiment and noise seeds each) are recorded offline at the case's rate, and
+[1/1.5, 1.5], every damping in [1/2, 2]; each band's gain and engagement lag from the plant
+preset ``bands``, :data:`BANDS_DRAW` + seed: the identifier's priors, the thesis values, are
+then off, its band priors 8.0 N m/A and 20 ms included), its sensors' noise scaled. Two
+independent runs of the ``ident`` experiment (its own experiment and noise seeds each) are
+recorded offline at the case's rate, and
 ``dvt_identify.pipeline.run`` identifies the first validated on the second with the CLI's
 set-up (the default ``dvt`` description, its loop settings, no override).
 """
@@ -21,12 +23,15 @@ from typing import Any
 import numpy as np
 import yaml
 
+from dvt_driver.plant.hidden import load_hidden
 from dvt_driver.plant.offline import record_offline
 from dvt_driver.plant.settings import SensorConfig
 from dvt_driver.run.experiment_core import build
 from dvt_identify import pipeline
 from dvt_model.params import load_parameters
 
+BANDS_DRAW = 20_000
+"""The band brakes of case ``seed`` are the ``bands`` preset's draw ``BANDS_DRAW + seed``."""
 INERTIA_SPREAD = 1.5
 DAMPING_SPREAD = 2.0
 NOISE_SCALES = (0.5, 1.0, 2.0)
@@ -73,6 +78,10 @@ def one_seed(seed: int, tmp: str) -> dict[str, Any]:
     root.mkdir(parents=True, exist_ok=True)
     rate, noise = case(seed)
     ppath, factors = drawn_parameters(seed, root)
+    bands = load_hidden("bands", draw=BANDS_DRAW + seed)
+    if bands.bands is None:
+        raise RuntimeError("the bands preset drew no band law")
+    factors["bands"] = bands.bands.to_mapping()
     params = load_parameters(str(ppath))
     base = SensorConfig()
     sensors = dataclasses.replace(base, tach_noise=base.tach_noise * noise,
@@ -82,7 +91,7 @@ def one_seed(seed: int, tmp: str) -> dict[str, Any]:
 
     def run(name: str, s: int) -> Path:
         exp = dataclasses.replace(build("ident", seed=s), sample_period_us=period)
-        return record_offline(root / name, exp, params, None, seed=s + 500, sensors=sensors)
+        return record_offline(root / name, exp, params, bands, seed=s + 500, sensors=sensors)
     est, val = run("est", seed), run("val", seed + 1000)
     res = pipeline.run([est], [val], root / "out", "dvt", quiet=True, plots=False,
                        series=False)

@@ -1,8 +1,9 @@
 """No false cause on clean plants: randomised clean plants accept nothing.
 
-40 seeds, each a clean plant (no hidden effect) whose inertias and dampings are drawn per seed,
-half of them recorded at 1 kHz and half at the thesis's 62.5 Hz, with the sensors' noise at 0.5,
-1 and 2 times the bench's in turn (``tests/false_effects_run.py``). Each is identified as the
+40 seeds, each a clean plant (no hidden effect) whose inertias, dampings and band brakes (each
+band's gain and lag, off the identifier's band priors) are drawn per seed, half of them
+recorded at 1 kHz and half at the thesis's 62.5 Hz, with the sensors' noise at 0.5, 1 and 2
+times the bench's in turn (``tests/false_effects_run.py``). Each is identified as the
 CLI does it (default ``dvt`` description and loop settings, estimation on one run, validation on
 an independent second one). The claim: no effect is accepted on any of them. With 0 of 40 the
 one-sided 95 % Clopper-Pearson upper bound on the false-acceptance rate per clean run is
