@@ -179,7 +179,8 @@ def _row_model(f: dict[str, Any]) -> tuple[str, str]:
 
 
 def _row_false(f: dict[str, Any]) -> tuple[str, str]:
-    return ("randomised clean plants (1 kHz and 62.5 Hz, three noise levels)",
+    return ("randomised clean plants (inertias, dampings and bands drawn; 1 kHz and 62.5 Hz; "
+            "three noise levels)",
             f"{_n(f.get('false_acceptances'))} of {_n(f.get('clean_plants'))} accept an "
             f"effect (95 % upper bound {_n(100 * f['upper_bound_95'], '.1f')} %)"
             if isinstance(f.get("upper_bound_95"), (int, float)) else "?")
