@@ -73,7 +73,7 @@ from dvt_identify.oerefine import (
     _StalledError,
     _whiten,
 )
-from dvt_identify.parallel import fork_map, workers
+from dvt_identify.parallel import fork_map
 from dvt_identify.subspace import _N4SID
 
 MODE_GAIN = 0.01
@@ -262,7 +262,8 @@ class LinearReference:
         """Each order's subspace start refined and scored, ``order -> (((cost, model, x0s,
         nfev, label), scores) or why it failed, seconds)``; the orders are independent and
         shared between the cores (:func:`dvt_identify.parallel.fork_map`), the largest first
-        (the cost of an iteration grows with the square of the parameters)."""
+        to whichever process is free (the cost of an iteration grows with the square of the
+        parameters)."""
         def one(n: int) -> tuple[tuple[_Refined, _Scores] | str, float]:
             t0 = time.perf_counter()
             try:
@@ -271,18 +272,10 @@ class LinearReference:
                 return str(exc), time.perf_counter() - t0
             return (r, self._scores(r[1], est, r[2], sel)), time.perf_counter() - t0
 
-        def group(orders: list[int]) -> list[tuple[tuple[_Refined, _Scores] | str, float]]:
-            return [one(n) for n in orders]
-        work = sorted(range(1, self.max_order + 1), key=self._n_params, reverse=True)
-        groups: list[list[int]] = [[] for _ in range(min(workers(), len(work)))]
-        load = [0.0] * len(groups)
-        for n in work:  # largest first onto the least loaded worker
-            g = int(np.argmin(load))
-            groups[g].append(n)
-            load[g] += float(self._n_params(n) + n) ** 2
-        done = fork_map(group, groups)
-        return {n: r for orders, res in zip(groups, done, strict=True)
-                for n, r in zip(orders, res, strict=True)}
+        orders = list(range(1, self.max_order + 1))
+        done = fork_map(one, orders,
+                        costs=[float(self._n_params(n) + n) ** 2 for n in orders])
+        return dict(zip(orders, done, strict=True))
 
     def simulate(self, seg: Segment, x0: Array) -> Array:
         """Simulated outputs of ``seg`` from initial state ``x0`` (nx,), shape (N, ny).
