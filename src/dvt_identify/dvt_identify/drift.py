@@ -244,17 +244,17 @@ def _refit_one(fit: OEFit, i: int, segs: Sequence[Segment], windows: int
     if dense_ok(sum(sg.y.size for sg in segs), q):
         r = least_squares(fun, z0, jac=jac, bounds=(zlo, zhi), x_scale="jac", method="trf",
                           ftol=1e-8, xtol=1e-8, gtol=1e-8)
+        z = r.x
         cov = sandwich_covariance(r.jac, r.fun, m.ny, [s.n for s in segs])
     else:  # a long recording: by its factor (dvt_identify.streamls)
         fac = Factored(lambda z: (rows(z, k) for k in range(len(segs))), q)
-        z = _gauss_newton(fac, z0, zlo, zhi, windows, sum(sg.y.size for sg in segs))
-        if z is None:  # not converged in GN_STEPS: the trust-region solver from the fit
-            z = least_squares(fac.residual, z0, jac=fac.jacobian, bounds=(zlo, zhi),
-                              x_scale="jac", method="trf", ftol=1e-8, xtol=1e-8,
-                              gtol=1e-8).x
+        got = _gauss_newton(fac, z0, zlo, zhi, windows, sum(sg.y.size for sg in segs))
+        # not settled in GN_STEPS: the trust-region solver from the fit
+        z = got if got is not None else least_squares(
+            fac.residual, z0, jac=fac.jacobian, bounds=(zlo, zhi), x_scale="jac",
+            method="trf", ftol=1e-8, xtol=1e-8, gtol=1e-8).x
         _, cov = sandwich_by_segment(lambda k: rows(z, k), [s.n for s in segs], m.ny, q)
-        return np.asarray(z[:windows], float), np.asarray(cov.std[:windows], float)
-    return np.asarray(r.x[:windows], float), np.asarray(cov.std[:windows], float)
+    return np.asarray(z[:windows], float), np.asarray(cov.std[:windows], float)
 
 
 GN_STEPS = 6
