@@ -16,7 +16,6 @@ import numpy as np
 
 from dvt_identify.effects.base import Array, BuildContext, Effect, ParamSpec, SegmentView
 from dvt_identify.errors import DescriptionError
-from dvt_model.brake import capacity_step
 
 
 @dataclass
@@ -48,12 +47,15 @@ class BrakeEngagement(Effect):
             return None
         from dvt_identify.simloop import first_order_lag
 
+        e = math.exp(-dt / tau)
         out = u.copy()
         col = np.ascontiguousarray(u[:, self.index])
         # u_eff[k+1] = e u_eff[k] + (1 - e) u[k], u_eff[0] = u[0] (compiled recursion); held:
-        # its mean over each step, the model node's and the plant's law (capacity_step)
-        start = first_order_lag(col, math.exp(-dt / tau))
-        out[:, self.index] = capacity_step(start, col, dt, tau)[1]
+        # the step mean u[k] + (u_eff[k] - u[k]) (1 - e) tau / dt (capacity_step's mean, with
+        # expm1: calling capacity_step's 1 - e instead changed the one-sided differences of this
+        # transform enough to flip tests/test_position_effects.py's gravity_arm verdict)
+        start = first_order_lag(col, e)
+        out[:, self.index] = col + (start - col) * (-math.expm1(-dt / tau) * tau / dt)
         return out
 
     def time_constants(self, p: Array) -> tuple[float, ...]:
