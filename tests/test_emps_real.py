@@ -13,7 +13,9 @@ agrees with the tool's figure; the published IDIM-LS model, simulated here with 
 and stick rule, gives the reproduction of its figure (8.39 mm: deterministic, no fit); the
 physical model scores at least as well as the tool's own linear reference on the selection and
 the test data; and the tool says that the test record needed more friction than the estimation
-record, as the records themselves show away from the pulse edges.
+record, as the records themselves show away from the pulse edges; and that the chosen
+structure, refitted on the test record itself, describes it under the best known figure (the
+distance to it is the records' disagreement, not a missing term).
 """
 
 from __future__ import annotations
@@ -96,3 +98,17 @@ def test_the_records_disagreement_is_detected_and_read_as_friction(
     for q in emps["bench"]["steady_force_difference"]:
         assert q["plus_N"] > 0.4 and q["minus_N"] < -0.4, q
     assert "The test record disagrees" in emps["md"]
+
+
+def test_the_chosen_structure_describes_the_test_record_when_refitted_on_it(
+        emps: dict[str, Any]) -> None:
+    """The README's "the structure is not the limit": the tool's chosen terms, refitted on the
+    test record by the same protocol (in sample), come under the best known 2.64 mm there, and
+    those parameters miss the estimation record by more than the chosen model does: the
+    records need different friction levels, whichever one the parameters come from."""
+    b = emps["bench"]["test_record_bound"]
+    ours = next(r for r in emps["bench"]["rows"] if r["label"].startswith("dvt-identify, "))
+    assert b["test_rms_mm"] < 2.64, b
+    assert b["test_rms_mm"] < ours["test_rms_mm"], (b, ours)
+    assert b["est_rms_mm"] > ours["est_rms_mm"], (b, ours)
+    assert set(b["parameters"]) == set(b["tool_parameters"]), b
