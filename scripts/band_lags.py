@@ -9,12 +9,18 @@ and prints per band the plant's value, the estimate and its reported std. ``--ow
 then also replaces the fitted outputs by the identifier's own model at the plant's band values
 (the other parameters as fitted, Gaussian noise of the fit's residual size per output, seed 5)
 and refits from the same starts on the same grid: does the fit find the lag its model has?
-The fit at 1 kHz (``--fit-decimate 1``) takes about 7 minutes on one core, the default (5)
-about 2.
+``--where`` says where in the recording each lag's estimate comes from: the fit's cost with
+that band's lag put back to the plant's value (every other parameter as fitted) minus the
+fit's own, split into the engagements (from each rise of the band's current, 0.7 s), the
+releases (from each fall, 0.8 s: the spin-up that follows, whose speeds carry the release's
+effect) and the rest. ``--noise-free`` records without the tachometer's and the currents'
+noise (the encoders' and A/D quantisation stay). The fit at 1 kHz (``--fit-decimate 1``)
+takes about 7 minutes on one core, the default (5) about 2.
 
 Usage::
 
     .venv/bin/python scripts/band_lags.py [--fit-decimate 0 2 1] [--draw SEED] [--own-model]
+        [--where] [--noise-free]
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import numpy as np
 
 from dvt_driver.plant.hidden import load_hidden
 from dvt_driver.plant.offline import record_offline
+from dvt_driver.plant.settings import SensorConfig
 from dvt_driver.run.experiment_core import build
 from dvt_identify import identifiability
 from dvt_identify.description import load_description
@@ -45,6 +52,10 @@ def main() -> int:
     ap.add_argument("--draw", type=int, default=None, help="plant draw seed (default: fixed)")
     ap.add_argument("--own-model", action="store_true",
                     help="also refit on the identifier's own model at the plant's band values")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="record with the tachometer, motor- and brake-current noise at 0")
+    ap.add_argument("--where", action="store_true",
+                    help="split each lag's cost difference into engagements, releases, rest")
     a = ap.parse_args()
     seed = 31 if a.draw is None else a.draw
     hidden = load_hidden("bands", draw=a.draw)
@@ -52,11 +63,13 @@ def main() -> int:
         print("band_lags: the preset 'bands' drew no band values", file=sys.stderr)
         return 1
     params = load_parameters("physical")
+    sensors = (dataclasses.replace(SensorConfig(), tach_noise=0.0, motor_current_noise=0.0,
+                                   brake_current_noise=0.0) if a.noise_free else None)
     tmp = Path(tempfile.mkdtemp(prefix="dvt-band-lags-"))
     est = record_offline(tmp / "est", build("ident_shifts", seed=seed), params, hidden,
-                         seed=seed)
+                         seed=seed, sensors=sensors)
     val = record_offline(tmp / "val", build("ident_shifts", seed=seed + 100), params, hidden,
-                         seed=seed + 100)
+                         seed=seed + 100, sensors=sensors)
     desc0 = load_description("dvt")
     e, v = load_segments([est], desc0), load_segments([val], desc0)
     chk = identifiability.check(desc0, e)
@@ -70,6 +83,8 @@ def main() -> int:
             truth[f"band_gain_ring{k}"] = hidden.bands.gain[k - 1]
             truth[f"band_time_constant_brake{k}"] = hidden.bands.time_constant[k - 1]
         _show(f"fit_decimate {q or 'auto'}: fit step {r.fit_dt * 1e3:g} ms", fit, truth)
+        if a.where:
+            _where(fit, truth)
         if a.own_model:
             _show("  the same fit on the identifier's own model at the plant's band values",
                   _refit_on_own_model(fit, truth), truth)
@@ -83,6 +98,41 @@ def _show(title: str, fit: OEFit, truth: dict[str, float]) -> None:
         off = (p[name] - t) / sd[name] if sd[name] > 0 else float("inf")
         print(f"  {name:28s} plant {t:.4g}  fit {p[name]:.4g} +- {sd[name]:.2g}"
               f"  ({off:+.1f} std)", flush=True)
+
+
+ENGAGED_S = 0.7
+"""Span after a rise of a band's current counted as its engagement [s] (``ident_shifts``'
+``engaged``)."""
+RELEASED_S = 0.8
+"""Span after a fall of a band's current counted as its release [s]."""
+
+
+def _where(fit: OEFit, truth: dict[str, float]) -> None:
+    """Per band: the weighted cost with its lag at the plant's value minus the fit's, split
+    into engagements, releases and the rest (module docstring)."""
+    m = fit.model
+    for k in (1, 2, 3):
+        name = f"band_time_constant_brake{k}"
+        theta = np.array(fit.theta_, dtype=float)
+        theta[list(m.names).index(name)] = truth[name]
+        parts = {"engagements": 0.0, "releases": 0.0, "rest": 0.0}
+        for seg, x0 in zip(fit.segments_, fit.x0_, strict=True):
+            r0 = (seg.y - m.simulate(fit.theta_, seg, x0)) / fit.weights_
+            r1 = (seg.y - m.simulate(theta, seg, x0)) / fit.weights_
+            d = np.nansum(r1 * r1 - r0 * r0, axis=1)
+            on = seg.u[:, list(seg.input_names).index(f"brake{k}")] > 0.01
+            t = seg.t
+            engage = np.zeros(seg.n, dtype=bool)
+            release = np.zeros(seg.n, dtype=bool)
+            for e in np.flatnonzero(np.diff(on.astype(int)) != 0) + 1:
+                span = ENGAGED_S if on[e] else RELEASED_S
+                (engage if on[e] else release)[(t >= t[e]) & (t < t[e] + span)] = True
+            parts["engagements"] += float(d[engage].sum())
+            parts["releases"] += float(d[release & ~engage].sum())
+            parts["rest"] += float(d[~engage & ~release].sum())
+        total = sum(parts.values())
+        print(f"  {name}: cost at the plant's lag minus the fit's {total:.3g}: "
+              + ", ".join(f"{n} {v:.3g}" for n, v in parts.items()), flush=True)
 
 
 def _refit_on_own_model(fit: OEFit, truth: dict[str, float]) -> OEFit:
