@@ -100,9 +100,10 @@ SEED41_BAND1 = pytest.mark.xfail(strict=True, reason=(
     "identifier: seed 41's band 1 lag comes out 17.06 +- 0.12 ms vs the plant's 16.38 ms "
     "(+5.7 std; 17.14 and 17.17 ms at 4 and 2 ms fit steps: not the step), the other lags "
     "and all gains within 2.1 std (scripts/band_lags.py --draw 41, 2026-11-27); cause not "
-    "traced, placed: 94 % of the cost the plant's lag adds lies in the 0.8 s after band 1's "
-    "releases, 2 % in its engagements; the same with every sensor noise at 0 (--where, "
-    "docs/identification.md section 2)"))
+    "traced to the motor current's timing (held over the interval after its sample, the "
+    "model's torque comes half a sample late): with the description keys hold: linear and "
+    "sampling: interval every band comes back within 2.2 std (--intersample), not yet the "
+    "dvt default (docs/identification.md section 2)"))
 
 
 @pytest.mark.parametrize("draw", [None, pytest.param(41, marks=SEED41_BAND1)],

@@ -48,6 +48,7 @@ from dvt_identify.data import (
     Segment,
     SignalSpec,
     _constant,
+    intersample,
     make_segment,
     read_jointstate_topics,
 )
@@ -454,7 +455,7 @@ def load_bag_segments(bag: str | Path, inputs: Sequence[SignalSpec],
                            filled[:, ny:nsig], filled[:, :ny], [s.name for s in inputs],
                            [s.name for s in outputs],
                            angles=filled[:, nsig:nsig + n_ang] if n_ang else None)
-        out.append(replace(seg, notes=notes))
+        out.append(intersample(replace(seg, notes=notes), inputs, outputs))
     return out
 
 

@@ -6,6 +6,9 @@ A description is a YAML file (see ``descriptions/emps.yaml`` for a complete exam
     inputs:  [{name: force, topic: /emps/drive, field: effort, joint: carriage,
                scale: 1.0, saturation: [-351.5, 351.5]}]
     outputs: [{name: carriage, topic: /emps/joint_states, field: velocity, joint: carriage}]
+    # optional per input   hold: zoh (a held command, default) | linear (a sampled current)
+    # optional per output  sampling: instant (default) | interval (an encoder's count rate)
+    # (dvt_identify.data.intersample)
     structure:
       type: mechanical            # or state_space, or python
       mass: [[M]]                 # entries: numbers or [-][coef*]parameter
@@ -82,7 +85,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from dvt_identify.data import Checks, SignalSpec
+from dvt_identify.data import HOLDS, SAMPLINGS, Checks, SignalSpec
 from dvt_identify.effects import VOCABULARY, Effect, make_effect
 from dvt_identify.errors import DescriptionError
 from dvt_identify.structures import (
@@ -360,14 +363,26 @@ def _req(d: dict[str, Any], key: str, where: str) -> Any:
     return d[key]
 
 
-def _signals(raw: Any, where: str) -> tuple[SignalSpec, ...]:
+def _signals(raw: Any, where: str, kind: str) -> tuple[SignalSpec, ...]:
+    """The signal list ``raw`` of ``kind`` ``inputs`` or ``outputs``: an input may say how it
+    behaves between samples (``hold``), an output what its sample measures (``sampling``)."""
     if not isinstance(raw, list) or not raw:
         raise DescriptionError(f"{where}: expected a non-empty list of signals")
     out = []
+    own, other = ("hold", "sampling") if kind == "inputs" else ("sampling", "hold")
+    choices = {"hold": HOLDS, "sampling": SAMPLINGS}
     for i, s in enumerate(raw):
         w = f"{where}[{i}]"
         if not isinstance(s, dict):
             raise DescriptionError(f"{w}: expected a mapping, got {s!r}")
+        if other in s:
+            raise DescriptionError(f"{w}.{other}: {s[other]!r} is for "
+                                   f"{'outputs' if other == 'sampling' else 'inputs'}, not "
+                                   f"{kind} (an {kind[:-1]} takes {own}: one of "
+                                   f"{list(choices[own])})")
+        if own in s and s[own] not in choices[own]:
+            raise DescriptionError(f"{w}.{own}: expected one of {list(choices[own])}, got "
+                                   f"{s[own]!r}")
         sat = s.get("saturation")
         if sat is not None and (not isinstance(sat, list) or len(sat) != 2):
             raise DescriptionError(f"{w}.saturation: expected [low, high], got {sat!r}")
@@ -380,7 +395,9 @@ def _signals(raw: Any, where: str) -> tuple[SignalSpec, ...]:
                                   field=field_, joint=str(_req(s, "joint", w)),
                                   scale=float(s.get("scale", 1.0)),
                                   saturation=None if sat is None else (float(sat[0]),
-                                                                       float(sat[1]))))
+                                                                       float(sat[1])),
+                                  hold=str(s.get("hold", "zoh")),
+                                  sampling=str(s.get("sampling", "instant"))))
         except (TypeError, ValueError) as exc:
             raise DescriptionError(f"{w}: {exc}") from exc
     names = [s.name for s in out]
@@ -521,8 +538,8 @@ def parse_description(data: Any, source: str, text: str = "") -> Description:
     """Build a :class:`Description` from parsed YAML ``data``; errors name ``source``."""
     if not isinstance(data, dict):
         raise DescriptionError(f"{source}: expected a mapping at the top level")
-    inputs = _signals(_req(data, "inputs", source), f"{source}: inputs")
-    outputs = _signals(_req(data, "outputs", source), f"{source}: outputs")
+    inputs = _signals(_req(data, "inputs", source), f"{source}: inputs", "inputs")
+    outputs = _signals(_req(data, "outputs", source), f"{source}: outputs", "outputs")
     states = tuple(s.name for s in outputs)
     structure = _structure(_req(data, "structure", source), states,
                            tuple(s.name for s in inputs), f"{source}: structure")

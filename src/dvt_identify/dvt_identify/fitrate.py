@@ -53,6 +53,18 @@ def fit_decimation(dt: float, fastest_pole: float, time_constants: Sequence[floa
     return q
 
 
+def resolves_intersample(dt: float, fastest_pole: float, time_constants: Sequence[float] = ()
+                         ) -> bool:
+    """Whether samples ``dt`` [s] apart resolve the model's dynamics finely enough for a
+    statement about the signals *between* them (:func:`dvt_identify.data.intersample`: a
+    current linear between samples, an encoder's interval mean half a period back): the fit
+    step those dynamics need (:func:`fit_decimation`) is at least two sample periods. A
+    coarser recording (62.5 Hz for the DVT: its bands' 20-ms lags span about one period)
+    says nothing about the signal between its samples, and the simulation's own convention
+    (inputs held, outputs at the sample) stays."""
+    return fit_decimation(dt, fastest_pole, time_constants) >= 2
+
+
 def model_time_scales(model: OEModel, theta: Array | None = None) -> tuple[float, list[float]]:
     """``max |eig(A)|`` [1/s] (0 if it cannot be computed) and the effects' time constants [s]
     of ``model`` at ``theta`` (default: the specs' initial values)."""

@@ -27,9 +27,11 @@ from dvt_identify.data import DataWarning, Segment, _constant, decimate, lowpass
 from dvt_identify.description import Description, load_description
 from dvt_identify.errors import DataError, DvtIdentifyError
 from dvt_identify.fit import Progress, stderr_progress
+from dvt_identify.fitrate import model_time_scales, resolves_intersample
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.push import Push, model_node_parameters
 from dvt_identify.report import write_report
+from dvt_identify.simulation import OEModel
 from dvt_identify.stages import CV_MIN_BAGS, bag_of
 from dvt_model.progress import ProgressLine, fraction
 
@@ -53,6 +55,7 @@ def load_segments(bags: Sequence[str | Path], desc: Description) -> list[Segment
         DataError: naming the bag, topic and problem.
     """
     out = []
+    scales: tuple[float, list[float]] | None = None
     for bag in bags:
         for seg in load_bag_segments(bag, desc.inputs, desc.outputs, desc.checks):
             lp = desc.preprocess.lowpass
@@ -60,6 +63,15 @@ def load_segments(bags: Sequence[str | Path], desc: Description) -> list[Segment
                 seg = lowpass(seg, float(lp["cutoff_hz"]), int(lp.get("order", 4)),
                               bool(lp.get("zero_phase", True)))
             seg = decimate(seg, desc.preprocess.decimate)
+            if seg.input_hold is not None or seg.output_lag is not None:
+                if scales is None:
+                    scales = model_time_scales(OEModel(desc.structure,
+                                                       desc.make_model_effects()))
+                if not resolves_intersample(seg.dt, *scales):
+                    seg = replace(seg, input_hold=None, output_lag=None, notes=(
+                        *seg.notes, f"signals between samples not modelled (hold, sampling "
+                        f"of the description): {1.0 / seg.dt:g} Hz does not resolve the "
+                        "model's dynamics (dvt_identify.fitrate.resolves_intersample)"))
             out.append(seg)
     return out
 

@@ -38,7 +38,13 @@ from numpy.typing import NDArray
 from dvt_identify.data import Segment
 from dvt_identify.effects import Effect, SegmentView
 from dvt_identify.simloop import loop_members_sens
-from dvt_identify.simulation import OEModel, Prepared, loop_arrays, zoh_derivatives
+from dvt_identify.simulation import (
+    OEModel,
+    Prepared,
+    lag_outputs,
+    loop_arrays,
+    zoh_derivatives,
+)
 from dvt_identify.structures import matrix_derivatives
 
 Array = NDArray[np.float64]
@@ -224,6 +230,7 @@ def _output_tangents(model: OEModel, pr: Prepared, x: Array, tx: Array,
     else:
         y = x @ model.C.T
         ty = np.einsum("rj,njp->nrp", model.C, tx)
+    y, ty = lag_outputs(y, pr.out_lag, pr.dt), lag_outputs(ty, pr.out_lag, pr.dt)
     for i, (e, p) in enumerate(zip(model.effects, pr.ps, strict=True)):
         if not _overrides(e, "output_transform"):
             continue

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
-from dvt_identify.data import Segment
+from dvt_identify.data import Segment, held_inputs
 from dvt_identify.discrete import simulate_linear, zoh
 from dvt_identify.effects.base import Effect, ParamSpec, SegmentView
 from dvt_identify.errors import DataError, DescriptionError, FitError
@@ -97,6 +97,28 @@ def _zoh_derivatives_eig(A: Array, dA: Array, dt: float) -> tuple[Array, Array] 
     return np.ascontiguousarray(dAd, dtype=float), np.ascontiguousarray(dGd, dtype=float)
 
 
+def lag_outputs(y: Array, lag: Sequence[float] | None, dt: float) -> Array:
+    """Outputs ``y`` (N, ny) or their tangents (N, ny, P) on a step ``dt`` [s] as the sensors
+    see them: column ``j`` ``lag[j]`` [s] earlier (:attr:`dvt_identify.data.Segment.
+    output_lag`), by linear interpolation between steps (``lag <= dt``; the first sample has
+    no predecessor and stays). ``lag`` ``None`` or all 0: ``y`` itself.
+
+    Raises:
+        FitError: a lag longer than the step (it would need more than the previous sample).
+    """
+    if lag is None or not any(lag):
+        return y
+    out = np.array(y, dtype=float, copy=True)
+    for j, d in enumerate(lag):
+        if not d:
+            continue
+        a = float(d) / dt
+        if a > 1.0 + 1e-9:
+            raise FitError(f"output {j}: a lag of {d:g} s exceeds the step {dt:g} s")
+        out[1:, j] = (1.0 - a) * y[1:, j] + a * y[:-1, j]
+    return out
+
+
 def zoh_decimate(seg: Segment, q: int) -> Segment:
     """``seg`` at ``1/q`` of its rate, consistent with the zero-order hold of the simulation.
 
@@ -107,8 +129,11 @@ def zoh_decimate(seg: Segment, q: int) -> Segment:
     the lock-up times (measured: 5-9 % on M and D at 1 kHz / 5). The outputs are the centred
     ``q``-sample mean at each kept sample (an anti-alias filter without delay; for an even
     ``q`` the ``q + 1`` samples about it with half weights at the ends); the first is
-    the measured sample. A tail shorter than ``q`` samples is dropped. ``q <= 1`` returns
-    ``seg``.
+    the measured sample. A ``linear`` input (:attr:`~dvt_identify.data.Segment.input_hold`)
+    is averaged from its interval means (:func:`~dvt_identify.data.held_inputs`), the exact
+    mean of its line over each coarse step, and the result is held (``input_hold`` ``None``);
+    the outputs keep their ``output_lag``. A tail shorter than ``q`` samples is dropped.
+    ``q <= 1`` returns ``seg``.
 
     Raises:
         DataError: fewer than 10 samples would remain (naming the segment).
@@ -118,7 +143,8 @@ def zoh_decimate(seg: Segment, q: int) -> Segment:
     if seg.n // q < 10:
         raise DataError(f"{seg.name}: too little data to decimate by {q}: {seg.n} samples")
     n = (seg.n // q) * q
-    u = seg.u[:n].reshape(n // q, q, seg.u.shape[1]).mean(axis=1)
+    # a linear input's interval means, averaged: the mean over each coarse step
+    u = held_inputs(seg)[:n].reshape(n // q, q, seg.u.shape[1]).mean(axis=1)
     # centred: an odd q averages q samples about the kept one; an even q the q + 1 samples
     # about it with half weights at both ends (a q-sample box centred on the kept sample:
     # ``np.ones(q) / q`` with an even q is centred half a fine step early, a lag of dt / 2 in
@@ -131,8 +157,9 @@ def zoh_decimate(seg: Segment, q: int) -> Segment:
         y[:, j] = np.convolve(seg.y[:, j], kern, mode="same")[:n:q]
     y[0] = seg.y[0]
     ang = None if seg.angles is None else seg.angles[:n:q].copy()
+    # the coarse samples are step means, held as they are
     return replace(seg, t=seg.t[:n:q].copy(), u=np.ascontiguousarray(u), y=y, dt=seg.dt * q,
-                   angles=ang,
+                   angles=ang, input_hold=None,
                    notes=(*seg.notes, f"decimated by {q} to {1.0 / (seg.dt * q):g} Hz "
                                       f"(input held: step means)"))
 
@@ -291,6 +318,7 @@ class Prepared:
     smooth_of: list[int]
     dry: list[tuple[Array, Array | float, float]]
     dry_of: list[int]
+    out_lag: tuple[float, ...] | None = None
 
 
 class OEModel:
@@ -371,7 +399,7 @@ class OEModel:
     def outputs(self, pr: Prepared, x: Array) -> Array:
         """Outputs (N, ny) of states ``x`` (N, nx): ``y = C x`` then the effects' output maps
         at the parameters of ``pr``."""
-        y = x if self.C is None else x @ self.C.T
+        y = lag_outputs(x if self.C is None else x @ self.C.T, pr.out_lag, pr.dt)
         for e, p in zip(self.effects, pr.ps, strict=True):
             yt = e.output_transform(p, y, pr.dt)
             if yt is not None:
@@ -381,7 +409,7 @@ class OEModel:
     def transformed_inputs(self, ps: Sequence[Array], seg: Segment) -> Array:
         """The inputs (N, nu) after every effect's input transform (in order) at the effect
         parameters ``ps``."""
-        u = seg.u
+        u = held_inputs(seg)
         for e, p in zip(self.effects, ps, strict=True):
             ut = e.input_transform(p, u, seg.dt)
             if ut is not None:
@@ -439,7 +467,7 @@ class OEModel:
             dry = with_brk
         return Prepared(dt=seg.dt, A=A, B=B, F=F, Ad=Ad, Gd=Gd, ps=ps, u=u, view=view, w=w,
                         d=w @ Gd.T, forces=forces, smooth=smooth, smooth_of=smooth_of,
-                        dry=dry, dry_of=dry_of)
+                        dry=dry, dry_of=dry_of, out_lag=seg.output_lag)
 
     def _linear(self, theta: Array, dt: float) -> tuple[Array, Array, Array, Array, Array]:
         """``A``, ``B``, ``F`` of the structure at ``theta`` and the ZOH ``Ad``, ``Gd`` at ``dt``.
