@@ -20,17 +20,16 @@ from pathlib import Path
 
 import pytest
 from false_effects_run import one_seed
-from scipy import stats
+
+from dvt_identify.metrics import rate_upper_bound
 
 pytestmark = pytest.mark.slow
 SEEDS = range(40)
 
 
-def upper_bound(failures: int, n: int, level: float = 0.95) -> float:
-    """One-sided Clopper-Pearson upper bound on a rate from ``failures`` of ``n``."""
-    if failures >= n:
-        return 1.0
-    return float(stats.beta.ppf(level, failures + 1, n - failures))
+upper_bound = rate_upper_bound
+"""One-sided Clopper-Pearson upper bound on a rate (:func:`dvt_identify.metrics.
+rate_upper_bound`)."""
 
 
 @pytest.mark.timeout(2400)

@@ -203,3 +203,20 @@ def parameter_std(jac: ArrayLike, residual: ArrayLike, n_params: int | None = No
         undetermined = np.any(np.abs(vt[dropped].T) > 1e-6, axis=1)
         var = np.where(undetermined, np.inf, var)
     return np.asarray(np.sqrt(var))
+
+
+def rate_upper_bound(events: int, n: int, level: float = 0.95) -> float:
+    """One-sided Clopper-Pearson upper bound on a rate from ``events`` of ``n`` trials (false
+    effects over clean plants, extra terms over refits): 1 when every trial had the event.
+
+    Raises:
+        ValueError: ``n < 1`` or ``events`` outside ``[0, n]``.
+    """
+    from scipy import stats
+
+    if n < 1 or not 0 <= events <= n:
+        raise ValueError(f"rate_upper_bound: expected 0 <= events <= n, n >= 1, got "
+                         f"events {events}, n {n}")
+    if events >= n:
+        return 1.0
+    return float(stats.beta.ppf(level, events + 1, n - events))

@@ -247,11 +247,10 @@ def test_held_description_fixes_the_structure_at_the_model_in_use(tmp_path: Path
     assert held_description(load_description("dvt"), {}, tmp_path / "none.yaml") is None
 
 
-@pytest.fixture(scope="module")
-def friction_step(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float]:
-    """The ``watch`` experiment on the ``physical`` plant at 1 kHz, its Coulomb friction
-    stepping from 0 to 0.05 N m (sun) and 0.20 N m (carrier 3) at 6 s (``friction_step``);
-    the snapshot bag and the change time (host time [s])."""
+def _friction_step_bag(root: Path, seed: int) -> tuple[Path, float]:
+    """The ``watch`` experiment (``seed``) on the ``physical`` plant at 1 kHz, its Coulomb
+    friction stepping from 0 to 0.05 N m (sun) and 0.20 N m (carrier 3) at 6 s
+    (``friction_step``); the snapshot bag under ``root`` and the change time (host time [s])."""
     from dvt_driver.plant.hidden import load_hidden
     from dvt_driver.plant.offline import run_offline
     from dvt_driver.run.experiment_core import build
@@ -260,12 +259,26 @@ def friction_step(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float
     hidden = load_hidden("friction_step")
     hidden = dataclasses.replace(hidden, changes=tuple(
         dataclasses.replace(c, at=6.0) for c in hidden.changes))
-    run = run_offline(build("watch", seed=1, duration=12.0), load_parameters("physical"),
-                      hidden, seed=1)
+    run = run_offline(build("watch", seed=seed, duration=12.0), load_parameters("physical"),
+                      hidden, seed=seed)
     stamps = T0_NS + np.round(run.t * 1e9).astype(np.int64)
-    bag = write_run(tmp_path_factory.mktemp("step") / "snapshot", stamps, run.speeds,
-                    run.currents, positions=run.positions)
+    bag = write_run(root / "snapshot", stamps, run.speeds, run.currents,
+                    positions=run.positions)
     return bag, T0_NS * 1e-9 + 6.0
+
+
+@pytest.fixture(scope="module")
+def friction_step(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float]:
+    """:func:`_friction_step_bag` of seed 1."""
+    return _friction_step_bag(tmp_path_factory.mktemp("step"), 1)
+
+
+def _first_refit(bag: Path, change: float, work: Path) -> Any:
+    """The live loop's first refit: 2.5 s to fit from 0.5 s after the change, 1.5 s held
+    out, the structure held at the model in use (``physical``), 10-ms fit step."""
+    req = RequestFit(1, (change + 0.5, change + 3.0), (change + 3.0, change + 4.5),
+                     ("sun_shaft",))
+    return refit(bag, req, {"params": "physical"}, work, RefitSettings(fit_decimate=10))
 
 
 T0_NS = 1_800_000_000 * 10**9
@@ -275,19 +288,17 @@ def test_first_refit_names_both_coulomb_steps_on_a_few_seconds(
         friction_step: tuple[Path, float], tmp_path: Path) -> None:
     """2.5 s to fit, 1.5 s held out, 0.5 s after the step (the live loop's first refit): with
     the structure held at the model in use the refit names Coulomb friction on the sun shaft
-    and on carrier 3, near the plant's values, and pushes the in-use M and D unchanged."""
+    and on carrier 3, near the plant's values, and pushes the in-use M and D unchanged. (That
+    it names nothing else is a rate over plants: the slow test below.)"""
     from dvt_model.config import resolve
 
     bag, change = friction_step
-    req = RequestFit(1, (change + 0.5, change + 3.0), (change + 3.0, change + 4.5),
-                     ("sun_shaft",))
-    out = refit(bag, req, {"params": "physical"}, tmp_path / "work",
-                RefitSettings(fit_decimate=10))
+    out = _first_refit(bag, change, tmp_path / "work")
     assert not out.error, out.error
     s = out.summary
     assert s["stage"] == "effects" and set(s["held"]) == {"M11", "M12", "M22", "D11", "D12",
                                                           "D22"}
-    assert set(s["accepted"]) == {"coulomb_friction@sun_shaft", "coulomb_friction@carrier3"}
+    assert {"coulomb_friction@sun_shaft", "coulomb_friction@carrier3"} <= set(s["accepted"])
     terms = json.loads(out.new_parameters["effects"])
     fc = {tuple(t["member"]): t["Fc"] for t in terms if t["kind"] == "coulomb"}
     assert fc[(1.0, 0.0)] == pytest.approx(0.05, rel=0.3), fc
@@ -297,3 +308,42 @@ def test_first_refit_names_both_coulomb_steps_on_a_few_seconds(
     rms_new = np.sqrt(np.mean(np.asarray(out.new_errors) ** 2, axis=0))
     rms_cur = np.sqrt(np.mean(np.asarray(out.current_errors) ** 2, axis=0))
     assert np.all(rms_new < 0.3 * rms_cur), (rms_cur, rms_new)
+
+
+EXTRA_SEEDS = range(1, 11)
+"""Plants (experiment and noise seeds) of the first-refit rate test."""
+MAX_EXTRA = 2
+"""Most of the :data:`EXTRA_SEEDS` refits that may name a term beyond the two Coulomb steps
+(measured 2026-11-27: 1 of 10, seed 1 a windage on the sun with the motor current held linear
+and the sun speed an interval mean; seed 8 an ``unlisted`` sun term with the old timing)."""
+
+
+def _refit_row(seed: int, root: str) -> tuple[int, list[str], str]:
+    work = Path(root) / f"seed{seed}"
+    work.mkdir()
+    bag, change = _friction_step_bag(work, seed)
+    out = _first_refit(bag, change, work / "work")
+    return seed, list(out.summary.get("accepted", [])), out.error or ""
+
+
+@pytest.mark.slow
+def test_first_refits_name_both_coulomb_steps_and_rarely_more(tmp_path: Path) -> None:
+    """Over ten plants the first refit names both Coulomb steps every time and a further term
+    in at most :data:`MAX_EXTRA` of them (printed with the 95 % Clopper-Pearson upper bound on
+    the rate: ten short refits bound it loosely, and the bound is what the test states)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from dvt_identify.metrics import rate_upper_bound
+
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as pool:
+        rows = list(pool.map(_refit_row, EXTRA_SEEDS, [str(tmp_path)] * len(EXTRA_SEEDS)))
+    both = {"coulomb_friction@sun_shaft", "coulomb_friction@carrier3"}
+    extra = [(seed, sorted(set(acc) - both)) for seed, acc, _ in rows if set(acc) - both]
+    n = len(rows)
+    bound = rate_upper_bound(len(extra), n)
+    print(f"\nfirst refits naming more than the two Coulomb steps: {len(extra)} of {n} "
+          f"(95 % upper bound on the rate {100 * bound:.0f} %): {extra}")
+    assert all(not err for _, _, err in rows), rows
+    assert all(both <= set(acc) for _, acc, _ in rows), rows
+    assert len(extra) <= MAX_EXTRA, extra
