@@ -27,9 +27,6 @@ pytestmark = pytest.mark.slow
 SEEDS = range(40)
 
 
-upper_bound = rate_upper_bound
-"""One-sided Clopper-Pearson upper bound on a rate (:func:`dvt_identify.metrics.
-rate_upper_bound`)."""
 
 
 @pytest.mark.timeout(2400)
@@ -47,7 +44,7 @@ def test_randomised_clean_plants_accept_no_effect(tmp_path: Path) -> None:
     false = [r for r in rows if r["accepted"]]
     n = len(rows)
     print(f"false effects accepted on {len(false)} of {n} randomised clean plants "
-          f"(95 % upper bound on the rate {100 * upper_bound(len(false), n):.1f} %); "
+          f"(95 % upper bound on the rate {100 * rate_upper_bound(len(false), n):.1f} %); "
           f"{time.monotonic() - t0:.0f} s")
     assert {r["rate_hz"] for r in rows} == {1000.0, 62.5}
     assert len({r["noise_scale"] for r in rows}) == 3
@@ -55,5 +52,5 @@ def test_randomised_clean_plants_accept_no_effect(tmp_path: Path) -> None:
 
 
 def test_the_binomial_bound_is_the_clopper_pearson_one() -> None:
-    assert upper_bound(0, 40) == pytest.approx(1 - 0.05 ** (1 / 40), rel=1e-9)
-    assert upper_bound(40, 40) == 1.0
+    assert rate_upper_bound(0, 40) == pytest.approx(1 - 0.05 ** (1 / 40), rel=1e-9)
+    assert rate_upper_bound(40, 40) == 1.0

@@ -55,8 +55,8 @@ class SignalSpec:
         sampling: what an output's sample measures (:data:`SAMPLINGS`): ``instant``, the value
             at the sample time (a tachometer read by an A/D converter, an encoder position);
             ``interval``, the mean over the period that ends at the sample (a speed from an
-            encoder's count difference, centred half a period early): the two neighbouring
-            samples' mean is the value at the sample time (:func:`intersample`).
+            encoder's count difference, centred half a period early): compared with the
+            model's output half a period earlier (:func:`intersample`).
     """
 
     name: str
@@ -255,16 +255,14 @@ def intersample(seg: Segment, inputs: Sequence[SignalSpec], outputs: Sequence[Si
     if seg.n < 2 or not (lin or itv):
         return seg
     notes = list(seg.notes)
-    hold = seg.input_hold
+    hold = None
     if lin:
-        hold = tuple("linear" if j in lin else ("zoh" if hold is None else hold[j])
-                     for j in range(len(inputs)))
+        hold = tuple(s.hold for s in inputs)
         notes.append("inputs held linear between samples (each interval holds its mean): "
                      + ", ".join(inputs[j].name for j in lin))
-    lag = seg.output_lag
+    lag = None
     if itv:
-        lag = tuple((0.0 if lag is None else lag[j]) + (0.5 * seg.dt if j in itv else 0.0)
-                    for j in range(len(outputs)))
+        lag = tuple(0.5 * seg.dt if j in itv else 0.0 for j in range(len(outputs)))
         notes.append(f"interval-mean outputs compared with the model {0.5 * seg.dt:.6g} s "
                      "(half a period) earlier: " + ", ".join(outputs[j].name for j in itv))
     return replace(seg, notes=tuple(notes), output_lag=lag, input_hold=hold)
