@@ -14,16 +14,15 @@ that band's lag put back to the plant's value (every other parameter as fitted) 
 fit's own, split into the engagements (from each rise of the band's current, 0.7 s), the
 releases (from each fall, 0.8 s: the spin-up that follows, whose speeds carry the release's
 effect) and the rest. ``--noise-free`` records without the tachometer's and the currents'
-noise (the encoders' and A/D quantisation stay). ``--intersample`` identifies with the motor
-current held linear between samples and the sun speed compared as the encoder's interval mean
-(the description keys ``hold`` and ``sampling``, :func:`dvt_identify.data.intersample`). The
-fit at 1 kHz (``--fit-decimate 1``)
-takes about 7 minutes on one core, the default (5) about 2.
+noise (the encoders' and A/D quantisation stay). ``--no-intersample`` identifies without the
+description's ``hold: linear`` (motor current) and ``sampling: interval`` (sun speed), as the
+identifier did before (:func:`dvt_identify.data.intersample`). The fit at 1 kHz
+(``--fit-decimate 1``) takes about 7 minutes on one core, the default (5) about 2.
 
 Usage::
 
     .venv/bin/python scripts/band_lags.py [--fit-decimate 0 2 1] [--draw SEED] [--own-model]
-        [--where] [--noise-free] [--intersample]
+        [--where] [--noise-free] [--no-intersample]
 """
 
 from __future__ import annotations
@@ -59,9 +58,9 @@ def main() -> int:
                     help="record with the tachometer, motor- and brake-current noise at 0")
     ap.add_argument("--where", action="store_true",
                     help="split each lag's cost difference into engagements, releases, rest")
-    ap.add_argument("--intersample", action="store_true",
-                    help="the dvt description with the motor current held linear between "
-                         "samples and the sun speed an interval mean (hold, sampling)")
+    ap.add_argument("--no-intersample", action="store_true",
+                    help="the dvt description without its hold and sampling keys (the motor "
+                         "current held as sampled, the sun speed read at the sample)")
     a = ap.parse_args()
     seed = 31 if a.draw is None else a.draw
     hidden = load_hidden("bands", draw=a.draw)
@@ -77,8 +76,8 @@ def main() -> int:
     val = record_offline(tmp / "val", build("ident_shifts", seed=seed + 100), params, hidden,
                          seed=seed + 100, sensors=sensors)
     desc0 = load_description("dvt")
-    if a.intersample:
-        desc0 = load_description(intersample_description(desc0.text, tmp))
+    if a.no_intersample:
+        desc0 = load_description(without_intersample(desc0.text, tmp))
     e, v = load_segments([est], desc0), load_segments([val], desc0)
     chk = identifiability.check(desc0, e)
     desc = identifiability.apply(desc0, chk)
@@ -110,17 +109,16 @@ def _show(title: str, fit: OEFit, truth: dict[str, float]) -> None:
               f"  ({off:+.1f} std)", flush=True)
 
 
-def intersample_description(text: str, where: Path) -> Path:
-    """The ``dvt`` description ``text`` with ``hold: linear`` on the motor current and
-    ``sampling: interval`` on the sun speed (:func:`dvt_identify.data.intersample`), written
-    to ``where``."""
-    motor = "saturation: [-32.15, 32.15]}"
-    sun = "field: velocity, joint: sun_shaft}"
-    if text.count(motor) != 1 or text.count(sun) != 1:
+def without_intersample(text: str, where: Path) -> Path:
+    """The ``dvt`` description ``text`` without ``hold: linear`` on the motor current and
+    ``sampling: interval`` on the sun speed (:func:`dvt_identify.data.intersample`): the
+    simulation's own convention, written to ``where``."""
+    keys = (", hold: linear}", ",\n     sampling: interval}")
+    if any(text.count(k) != 1 for k in keys):
         raise SystemExit("band_lags: the dvt description's motor or sun_shaft line changed")
-    text = text.replace(motor, "saturation: [-32.15, 32.15], hold: linear}")
-    text = text.replace(sun, "field: velocity, joint: sun_shaft, sampling: interval}")
-    path = where / "dvt-intersample.yaml"
+    for k in keys:
+        text = text.replace(k, "}")
+    path = where / "dvt-no-intersample.yaml"
     path.write_text(text)
     return path
 

@@ -17,7 +17,7 @@ description's alpha on these 33 s: a drawn magnitude can be small); the plant's 
 are recovered for what was accepted. Tolerance rule: ``|estimate - truth| <= 3 std``, ``std``
 the reported standard deviation (:meth:`OEFit.parameter_std`, the HAC sandwich covariance of the
 output-error fit). Where the identifier's law is not the plant's, or the report has no usable
-std, each check states its bound and why (delay: half a sample; engagement dead time: between
+std, each check states its bound and why (delay: a quarter sample; engagement dead time: between
 the plant's squeeze-film time and the middle of its rise; backlash: a factor 2, the scan grid's
 resolution).
 """
@@ -224,17 +224,18 @@ def test_stribeck_levels_are_the_drawn_ones(
 def test_measurement_delays_are_the_drawn_one(
         results: dict[str, tuple[IdentificationResult, HiddenEffects]],
         tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Each speed's delay is the drawn delay plus its sensor's timing against the model, within
-    3 std or a quarter sample (0.25 ms), whichever is wider. The model holds the measured
-    current over the sample that follows it (the plant's current moves during it), so the
-    plant's response leads the model's by half a sample: the tachometer (carrier 3, read at the
-    sample) shows ``delay - T/2``; the sun's speed (encoder counts over the last period, centred
-    half a sample back) shows ``delay``. A quarter sample: the chain's stamp mapping jitters
-    by a fraction of a sample (0.1 ms measured), which the reported std (noise only) omits."""
+    """Each speed's delay is the drawn delay, within 3 std or a quarter sample (0.25 ms),
+    whichever is wider. The ``dvt`` description says how the signals behave between samples
+    (``dvt_identify.data.intersample``): the measured motor current is held linear (its
+    interval mean; held as sampled, the model's torque came half a sample late and the
+    tachometer showed ``delay - T/2``) and the sun speed, encoder counts over the last
+    period, is compared half a period back. A quarter sample: the chain's stamp mapping
+    jitters by a fraction of a sample (0.1 ms measured), which the reported std (noise only)
+    omits."""
     r, truth = _identify(results, tmp_path_factory, "ident-delay")
     p, sd = _estimates(r)
     assert "delay_sun_shaft" in p or "delay_carrier3" in p, p
-    timing = {"sun_shaft": 0.0, "carrier3": -0.5 * SAMPLE_PERIOD}
+    timing = {"sun_shaft": 0.0, "carrier3": 0.0}
     for where, offset in timing.items():
         name = f"delay_{where}"
         if name not in p:

@@ -55,7 +55,12 @@ reads them after ``identify`` returns). Cost: k extra refits per stage.
 
 Before the loop, :func:`dvt_identify.drift.drift_check` refits the baseline structure on windows
 of the estimation data: when a parameter drifts beyond its uncertainty the loop accepts no static
-effect (they would only mimic the drift) and the report names the drift.
+effect (they would only mimic the drift) and the report names the drift. Except one in a
+member's angle (:meth:`~dvt_identify.effects.base.Effect.depends_on_angle`): the angle is the
+one state an experiment does not repeat, so windows of different angle coverage see such an
+effect differently and read it as a change over time. With a drift, the rounds score only
+those candidates, and one that passes is kept only if the drift check on the model with it
+finds no drift (it explained the drift); then the loop goes on with every candidate.
 """
 
 from __future__ import annotations
@@ -260,23 +265,30 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     rnd = 0
     drift: DriftReport | None = None
     augment = cfg.augment
+    # a drift the window refits may owe to a static effect in a member's angle: until one such
+    # effect is accepted and clears it, only those are tried (Effect.depends_on_angle)
+    drift_pending = False
     if cfg.drift_windows >= 3:
         drift = drift_check(base_fit, fit_segs, cfg.drift_windows, cfg.alpha,
                             cfg.drift_min_change)
         say("drift: " + "; ".join(drift.summary()))
         if drift.drifting and augment:
-            augment = False
-            notes.append("augment loop not run: " + "; ".join(
-                p.statement() for p in drift.drifting) + ". A parameter that changes over the "
-                "recording is not a missing static effect; static terms would only mimic it.")
+            if any(c.depends_on_angle() for c in remaining):
+                drift_pending = True
+                say("drift: trying the effects in a member's angle first (windows of "
+                    "different angle coverage see a static one as a change over time)")
+            else:
+                augment = False
+                notes.append(_drift_veto(drift))
     while (augment and remaining
            and len(current.effects) - n_model_effects < cfg.max_effects):
         floors = stage_floors(current, val)
         rnd += 1
-        say(f"round {rnd}: scoring {len(remaining)} candidate(s)")
+        pool = [c for c in remaining if c.depends_on_angle()] if drift_pending else remaining
+        say(f"round {rnd}: scoring {len(pool)} candidate(s)")
         # the ``unlisted`` libraries are searched (dvt_identify.unlisted) only when no named
         # candidate passes: their proposal is appended to the round's scores
-        named = [c for c in remaining if c.name != "unlisted"]
+        named = [c for c in pool if c.name != "unlisted"]
         scores = score_candidates(current.fit, fit_segs, named, say) if named else []
         rounds.append(scores)
         seen = max((sc.r2 for sc in scores), default=0.0)
@@ -303,13 +315,16 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         trials = []
         trials.extend(_refits(current, screened[: cfg.max_tries_per_round], fit_segs, est,
                               val, same_rate, cfg, rnd, say, folds, floors))
-        if not any(d.accepted for d in trials) and len(named) < len(remaining):
+        if not any(d.accepted for d in trials) and len(named) < len(pool):
             from dvt_identify.unlisted import propose
 
             say(f"round {rnd}: the named candidates leave the residual: searching the "
                 "unlisted term library")
             prop = propose(current.fit, fit_segs, remaining, say)
-            if prop is not None and prop.p_value < cfg.alpha:
+            if prop is not None and drift_pending and not prop.effect.depends_on_angle():
+                say(f"round {rnd}: {prop.label} has no angle term: not tried while the "
+                    "drift is unexplained")
+            elif prop is not None and prop.p_value < cfg.alpha:
                 scores.append(prop)
                 say(f"round {rnd}: refit with {prop.label}")
                 dec = _try(current, prop, fit_segs, est, val, same_rate, cfg, rnd, say,
@@ -328,10 +343,30 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         for d, why in choice.losers:
             d.accepted = False
             d.reason = f"passes ({d.reason}) but {why}; rescored next round"
-        say(f"round {rnd}: ACCEPTED {best.score.label}")
         assert best.stage is not None
+        if drift_pending:
+            assert drift is not None
+            again = drift_check(best.stage.fit, fit_segs, cfg.drift_windows, cfg.alpha,
+                                cfg.drift_min_change)
+            say(f"round {rnd}: drift with {best.score.label}: " + "; ".join(again.summary()))
+            if again.drifting:
+                best.accepted = False
+                best.reason = (f"passes ({best.reason}) but leaves the drift ("
+                               + "; ".join(p.statement() for p in again.drifting) + ")")
+                notes.append(_drift_veto(drift, tried=True))
+                break
+            notes.append("drift explained: " + "; ".join(
+                p.statement() for p in drift.drifting) + f" in the baseline; with "
+                f"{best.score.label} no parameter drifts (a static effect in a member's "
+                "angle, seen differently by windows of different angle coverage)")
+            say(notes[-1])
+            drift, drift_pending = again, False
+        say(f"round {rnd}: ACCEPTED {best.score.label}")
         current = best.stage
         remaining = [c for c in remaining if c.label() != best.score.label]
+    if drift_pending:
+        assert drift is not None
+        notes.append(_drift_veto(drift, tried=True))
     return IdentificationResult(
         description=desc, estimation_bags=[s.name for s in est],
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,
@@ -339,6 +374,15 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         fit_dt=fit_segs[0].dt, notes=notes, val_segments=list(val), identifiability=check,
         drift=drift, est_segments=list(est),
         selection="validation" if folds is None else "cv", reference=reference)
+
+
+def _drift_veto(drift: DriftReport, tried: bool = False) -> str:
+    """The note of a drift that vetoes the augment loop (``tried``: after the effects in a
+    member's angle were tried and none explained it)."""
+    return (("augment loop stopped: no effect in a member's angle explains the drift: " if tried
+             else "augment loop not run: ") + "; ".join(p.statement() for p in drift.drifting)
+            + ". A parameter that changes over the recording is not a missing static effect; "
+            "static terms would only mimic it.")
 
 
 def _folds(fit: OEFit, fit_segs: Sequence[Segment], folds: Sequence[Sequence[int]] | None,

@@ -320,6 +320,15 @@ class Effect:
         if "name" in cls.__dict__:
             _REGISTERED.append(cls)
 
+    def depends_on_angle(self) -> bool:
+        """Whether the effect's force depends on a member's angle (gravity behind a stage, a
+        ripple phase-locked to an angle, an ``unlisted`` angle term). The angle is the one
+        state an experiment does not repeat: a static effect in it is seen differently by
+        windows of different angle coverage, which the drift check can read as a parameter
+        changing over the recording (:mod:`dvt_identify.loop` tries these effects first when
+        the baseline drifts)."""
+        return False
+
     # -- construction ----------------------------------------------------------------------
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:

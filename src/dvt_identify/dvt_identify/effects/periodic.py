@@ -52,6 +52,10 @@ class PeriodicDisturbance(Effect):
     no_term = ("clocked on time (clock: time): the model node's periodic term "
                "(angle_periodic) is phase-locked to an angle")
 
+    def depends_on_angle(self) -> bool:
+        """Unless clocked on time (``clock: time``)."""
+        return self.options.get("clock") != "time"
+
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
         """An ``angle_periodic`` term on the member, its ``angle`` the member's or (a
         ``mesh_stage`` k > 0) stage k's mesh angle; ``None`` when clocked on time."""

@@ -93,6 +93,10 @@ class GravityLoad(Effect):
     order = 150
     no_term = ""
 
+    def depends_on_angle(self) -> bool:
+        """Always: the torque is a function of the member's angle."""
+        return True
+
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
         """A ``gravity`` term: the same torque ``a cos(theta / N) + b sin(theta / N)`` on the
         member (the push sends it only when the angle was the measured position)."""
@@ -404,6 +408,10 @@ class Unlisted(Effect):
     name = "unlisted"
     order = 160
     no_term = "every coefficient is 0"
+
+    def depends_on_angle(self) -> bool:
+        """When a term has an angle factor (a library holds them, a proposal may not)."""
+        return any(t.trig for t in self.terms)
 
     def model_terms(self, p: Array, outputs: Sequence[str]) -> list[Term] | None:
         """One ``library`` term per non-zero coefficient: ``k S(s) T(order theta) P(u)`` on the
