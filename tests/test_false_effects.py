@@ -27,8 +27,6 @@ pytestmark = pytest.mark.slow
 SEEDS = range(40)
 
 
-
-
 @pytest.mark.timeout(2400)
 def test_randomised_clean_plants_accept_no_effect(tmp_path: Path) -> None:
     t0 = time.monotonic()

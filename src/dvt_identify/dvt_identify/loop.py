@@ -267,14 +267,14 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     augment = cfg.augment
     # a drift the window refits may owe to a static effect in a member's angle: until one such
     # effect is accepted and clears it, only those are tried (Effect.depends_on_angle)
-    drift_pending = False
+    unexplained: DriftReport | None = None
     if cfg.drift_windows >= 3:
         drift = drift_check(base_fit, fit_segs, cfg.drift_windows, cfg.alpha,
                             cfg.drift_min_change)
         say("drift: " + "; ".join(drift.summary()))
         if drift.drifting and augment:
             if any(c.depends_on_angle() for c in remaining):
-                drift_pending = True
+                unexplained = drift
                 say("drift: trying the effects in a member's angle first (windows of "
                     "different angle coverage see a static one as a change over time)")
             else:
@@ -284,7 +284,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
            and len(current.effects) - n_model_effects < cfg.max_effects):
         floors = stage_floors(current, val)
         rnd += 1
-        pool = [c for c in remaining if c.depends_on_angle()] if drift_pending else remaining
+        pool = ([c for c in remaining if c.depends_on_angle()] if unexplained is not None
+                else remaining)
         say(f"round {rnd}: scoring {len(pool)} candidate(s)")
         # the ``unlisted`` libraries are searched (dvt_identify.unlisted) only when no named
         # candidate passes: their proposal is appended to the round's scores
@@ -321,7 +322,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
             say(f"round {rnd}: the named candidates leave the residual: searching the "
                 "unlisted term library")
             prop = propose(current.fit, fit_segs, remaining, say)
-            if prop is not None and drift_pending and not prop.effect.depends_on_angle():
+            if (prop is not None and unexplained is not None
+                    and not prop.effect.depends_on_angle()):
                 say(f"round {rnd}: {prop.label} has no angle term: not tried while the "
                     "drift is unexplained")
             elif prop is not None and prop.p_value < cfg.alpha:
@@ -344,8 +346,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
             d.accepted = False
             d.reason = f"passes ({d.reason}) but {why}; rescored next round"
         assert best.stage is not None
-        if drift_pending:
-            assert drift is not None
+        if unexplained is not None:
             again = drift_check(best.stage.fit, fit_segs, cfg.drift_windows, cfg.alpha,
                                 cfg.drift_min_change)
             say(f"round {rnd}: drift with {best.score.label}: " + "; ".join(again.summary()))
@@ -353,20 +354,19 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                 best.accepted = False
                 best.reason = (f"passes ({best.reason}) but leaves the drift ("
                                + "; ".join(p.statement() for p in again.drifting) + ")")
-                notes.append(_drift_veto(drift, tried=True))
+                notes.append(_drift_veto(unexplained, tried=True))
                 break
             notes.append("drift explained: " + "; ".join(
-                p.statement() for p in drift.drifting) + f" in the baseline; with "
+                p.statement() for p in unexplained.drifting) + f" in the baseline; with "
                 f"{best.score.label} no parameter drifts (a static effect in a member's "
                 "angle, seen differently by windows of different angle coverage)")
             say(notes[-1])
-            drift, drift_pending = again, False
+            drift, unexplained = again, None
         say(f"round {rnd}: ACCEPTED {best.score.label}")
         current = best.stage
         remaining = [c for c in remaining if c.label() != best.score.label]
-    if drift_pending:
-        assert drift is not None
-        notes.append(_drift_veto(drift, tried=True))
+    if unexplained is not None:
+        notes.append(_drift_veto(unexplained, tried=True))
     return IdentificationResult(
         description=desc, estimation_bags=[s.name for s in est],
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,

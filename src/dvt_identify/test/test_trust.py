@@ -26,7 +26,6 @@ from dvt_identify.simulation import OEModel
 
 DT = 0.004
 
-
 _SIG = {"topic": "/s/joint_states", "field": "velocity", "joint": "x"}
 _DESCRIPTION_DATA: dict[str, Any] = {
     "name": "synthetic",
@@ -47,9 +46,10 @@ _DESCRIPTION_DATA: dict[str, Any] = {
 }
 
 
-def description() -> Description:
-    """One mass with viscous damping; the usual candidates."""
-    return parse_description(_DESCRIPTION_DATA, "test")
+def description(*more: dict[str, Any]) -> Description:
+    """One mass with viscous damping; the usual candidates and ``more``."""
+    return parse_description({**_DESCRIPTION_DATA,
+                              "candidates": [*_DESCRIPTION_DATA["candidates"], *more]}, "test")
 
 
 
@@ -185,13 +185,10 @@ def test_falling_damping_is_reported_as_drift_not_static_effects(
     drift's cause)."""
     n = 10000  # 40 s
     fv = 20.0 * (1.0 - 0.35 * np.arange(n) / n)
-    desc = description()
-    if angle_candidates:
-        more = parse_description({**_DESCRIPTION_DATA, "candidates": [
-            {"effect": "periodic_disturbance", "where": "v", "orders": [0.5, 1.0, 2.0]},
-            {"effect": "gravity_load", "where": "v", "reductions": [1.0, 3.0, 10.0]}]},
-            "test")
-        desc = replace(desc, candidates=desc.candidates + more.candidates)
+    desc = description(
+        {"effect": "periodic_disturbance", "where": "v", "orders": [0.5, 1.0, 2.0]},
+        {"effect": "gravity_load", "where": "v", "reductions": [1.0, 3.0, 10.0]},
+    ) if angle_candidates else description()
     est = [_segment(5, n, fv=fv)]
     val = [_segment(6, n, fv=fv)]
     res = identify(est, val, desc, LoopConfig.from_options(desc.fit))
@@ -243,12 +240,9 @@ def test_a_force_in_the_position_read_as_drift_is_explained_by_it(offered: bool)
     n = 7500  # 30 s
     est = [_cart_on_a_slope(5, n, 15.0, -10.0, 10.0, 15.0)]
     val = [_cart_on_a_slope(6, n, 15.0, -10.0, 10.0, 15.0)]
-    desc = description()
-    if offered:
-        more = parse_description({**_DESCRIPTION_DATA, "candidates": [
-            {"effect": "gravity_load", "where": "v", "reductions": [3.0, 10.0, 30.0]}]},
-            "test")
-        desc = replace(desc, candidates=desc.candidates + more.candidates)
+    desc = description(
+        {"effect": "gravity_load", "where": "v", "reductions": [3.0, 10.0, 30.0]},
+    ) if offered else description()
     res = identify(est, val, desc, LoopConfig.from_options(desc.fit))
     print(res.notes)
     assert res.drift is not None
