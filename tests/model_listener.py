@@ -32,6 +32,8 @@ class ModelListener:
         self.exe = SingleThreadedExecutor(context=ctx)
         self.exe.add_node(self.node)
         self.residual: list[tuple[list[float], list[float]]] = []
+        self.stamps: list[float] = []
+        """``header.stamp`` [s] of each residual received, in arrival order."""
         self.predicted: list[list[float]] = []
         self.results: list[dict[str, Any]] = []
         self.node.create_subscription(JointState, MODEL_RESIDUAL, self._res, rosutil.SENSOR_QOS)
@@ -43,6 +45,7 @@ class ModelListener:
 
     def _res(self, msg: JointState) -> None:
         self.residual.append((list(msg.velocity), list(msg.position)))
+        self.stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
 
     def _pred(self, msg: JointState) -> None:
         self.predicted.append(list(msg.position))
@@ -57,6 +60,18 @@ class ModelListener:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             self.exe.spin_once(timeout_sec=0.02)
+
+    def delivery(self, period: float = 1e-3) -> tuple[int, float]:
+        """What the last replay lost on its way, from the residual stamps (the node publishes
+        one residual per sample it receives, stamped like the sample): the number of samples
+        missing between the first and the last received [-], and the longest stamp step [s]
+        (``period`` [s] the replayed stream's sample period). Samples lost between the replay
+        and the node and between the node and this listener both count."""
+        t = np.sort(np.asarray(self.stamps))
+        if t.size < 2:
+            return 0, 0.0
+        missing = int(np.rint((t[-1] - t[0]) / period)) + 1 - t.size
+        return missing, float(np.max(np.diff(t)))
 
     def get(self, names: list[str]) -> Sequence[ParameterValue]:
         """The model node's parameter values."""
@@ -83,6 +98,7 @@ class ModelListener:
         time; RMS of the live speed residual [rad/s] and (``positions``) of the angle residual
         [rad] per joint (sun, carrier 3), the first ``skip`` samples left out."""
         self.residual.clear()
+        self.stamps.clear()
         self.predicted.clear()
         start, duration = window
         replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers",

@@ -18,12 +18,23 @@ of the compliant play (an impact oscillator) does not move the gap from the scor
 so it fails once the refit reports a real std (then the bound becomes 3 std). Measured: the
 committed draw (gap 0.0416 rad) gives the grid value 0.04; the nominal plant (0.03) gave 0.02.
 
-Live residual: carrier-3 RMS with the term below 0.85 times that without (measured 0.81 on the
-committed draw, 0.69-0.78 on the nominal plant, over 8 s slices); the sun's residual unchanged
-within 10 % (the play is on carrier 3's sensor). About 1.2 min on 2 cores (most of it the
+Live residual: carrier-3 RMS with the term below 0.85 times that without (measured 0.80 on the
+committed draw re-recorded with the as-built bands, 0.81 before, 0.69-0.78 on the nominal
+plant, over 8 s slices); the sun's residual unchanged within 10 % (the play is on carrier 3's
+sensor). About 1.2 min on 2 cores (most of it the
 identification). A burst of samples lost in transport re-anchors the node (``gap_reanchor``): before
 that rule, a burst of about 0.1 s in the replay with the term left the free run off for the rest
 of the slice (sun 5.60 against 2.21 rad/s without, a fresh-clone run of 729be9a).
+
+Transport is a confound, not the property: samples lost on the way change the free run the
+two RMS figures come from. The re-recorded draw gives 0.80 without losses (sun 2.171 in both
+replays, identical to the offline predictor); one re-anchoring burst moves it up to 0.89
+(``scripts/lost_bursts.py``), and a CI run of 39b21d6 on a loaded machine measured 1.04 with
+the sun's figure off too (2.195 against 2.171: the with-term replay had lost samples). So each
+RMS comes from a replay that reached the node whole (:func:`whole_replay`: the residual stamps
+show at most :data:`MAX_MISSING` samples missing and no burst the node re-anchors on); a replay
+that did not is repeated, at most :data:`ATTEMPTS` times in all, and the test fails naming the
+losses if none did. The assertion itself is never repeated.
 """
 
 from __future__ import annotations
@@ -31,13 +42,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from model_listener import ModelListener
 from recorded import BAGS, identify_recorded, truth_effects
 
 from dvt_identify.pipeline import model_push
-from dvt_model.contract import MODEL_RESIDUAL
+from dvt_model.contract import GAP_REANCHOR_S, MODEL_RESIDUAL
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -46,6 +58,26 @@ WINDOW = (0.0, 8.0)
 carrier 3 reverses many times)."""
 SKIP = 200
 """Samples after the replay's first (the anchor) left out of the RMS."""
+ATTEMPTS = 3
+"""Replays of the slice at most, per configuration, to get one that reached the node whole."""
+MAX_MISSING = 40
+"""Samples of the 8000 replayed that may be missing from a whole replay (0.5 %); lost
+singly or in short runs the free run goes on over them on held inputs (a run of 4 moves the
+carrier-3 figure by at most 0.02: ``scripts/lost_bursts.py``)."""
+
+
+def whole_replay(listener: ModelListener, procs, val: Path) -> tuple[np.ndarray, list]:
+    """Speed residual RMS [rad/s] (sun, carrier 3) of a replay of the slice that reached the
+    model node whole, and the (missing samples, longest stamp step [s]) of each attempt."""
+    seen = []
+    for _ in range(ATTEMPTS):
+        rms, _ = listener.replay(procs, val, WINDOW, SKIP, positions=False)
+        missing, step = listener.delivery()
+        seen.append((missing, round(step, 4)))
+        if missing <= MAX_MISSING and step < GAP_REANCHOR_S - 0.5e-3:
+            return rms, seen
+    pytest.fail(f"replay of {val} {WINDOW}: no attempt of {ATTEMPTS} reached the model node "
+                f"whole (missing samples, longest stamp step [s]): {seen}")
 
 
 def test_compliant_backlash_is_pushed_and_lowers_the_live_residual(procs, rclpy_context,
@@ -75,13 +107,14 @@ def test_compliant_backlash_is_pushed_and_lowers_the_live_residual(procs, rclpy_
                         "model node")
     live = json.loads(listener.get(["effects"])[0].string_value)
     assert live == terms, (live, terms)
-    with_term, _ = listener.replay(procs, val, WINDOW, SKIP, positions=False)
+    with_term, seen_with = whole_replay(listener, procs, val)
 
     ok, why = listener.set_string("effects", "[]")
     assert ok, why
-    without, _ = listener.replay(procs, val, WINDOW, SKIP, positions=False)
+    without, seen_without = whole_replay(listener, procs, val)
     assert model.poll() is None, procs.log(model)
     print(f"\npushed {terms}; live residual RMS [rad/s] (sun, carrier3): with the term "
-          f"{with_term.round(3)}, without {without.round(3)}")
+          f"{with_term.round(3)}, without {without.round(3)}; replays (missing, longest step "
+          f"[s]): with {seen_with}, without {seen_without}")
     assert with_term[1] < 0.85 * without[1], (with_term, without)
     assert with_term[0] == pytest.approx(without[0], rel=0.1), (with_term, without)

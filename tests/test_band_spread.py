@@ -1,7 +1,8 @@
 """The band brakes as built: each band's own gain and engagement lag come back from the data.
 
-The plant (preset ``bands``, :mod:`dvt_driver.plant.hidden`) replaces the parameter set's one
-band law (8.0 N m/A, 20 ms: the ``dvt`` description's priors) by a gain and a lag per band,
+The plant (preset ``bands``, :mod:`dvt_driver.plant.hidden`) replaces the parameter set's
+bands (a unit as built, off the ``dvt`` description's priors 8.0 N m/A and 20 ms, the design
+law) by a gain and a lag per band,
 drawn per seed (gains 5.6-10.8 N m/A, lags 10-40 ms). Estimation and validation runs are the
 shift-rich experiment (``ident_shifts``: 12 engagements against a slipping ring, every band
 four times), made offline through the driver's supervisor in ``tmp_path`` with different

@@ -166,7 +166,9 @@ def test_runtime_parameter_change_and_refusal(procs, rclpy_context, tmp_path):
     assert len(res) > 1000
     rms_thesis = np.sqrt(np.mean(res[200:] ** 2, axis=0))
     assert rms_thesis[0] > 3 * NOISE, rms_thesis
-    # and back to the right model: residual returns to the noise level
+    # and back to the right model (the set's own bands: the override cleared): residual
+    # returns to the noise level
+    assert listener.set_param("band_time_constant", []).successful
     assert listener.set_param("params", "physical").successful
     listener.residuals.clear()
     replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")

@@ -129,6 +129,15 @@ def test_truth_yaml_holds_the_drawn_values_and_the_draw() -> None:
     sim = PlantSim(load_parameters("physical"), h, seed=13)
     plant_doc = parse_truth(sim.truth_yaml())
     assert plant_doc["hidden"] == doc["hidden"] and plant_doc["hidden_draw"] == doc["hidden_draw"]
+    # the band law the plant runs is in the truth: the parameter set's bands as built ...
+    built = load_parameters("physical").brake
+    assert plant_doc["plant"]["bands"] == {"gain": built.gains.tolist(),
+                                           "time_constant": built.time_constants.tolist()}
+    # ... or a `bands` draw
+    drawn = load_hidden("bands", draw=13)
+    assert drawn.bands is not None and drawn.bands.gain is not None
+    bands_doc = parse_truth(PlantSim(load_parameters("physical"), drawn, seed=13).truth_yaml())
+    assert bands_doc["plant"]["bands"]["gain"] == list(drawn.bands.gain) != built.gains.tolist()
     # a preset without distributions writes no draw
     assert "hidden_draw" not in parse_truth(load_hidden("none", draw=1).to_truth_yaml(
         params_name="physical", seed=1, sample_period_us=1000))

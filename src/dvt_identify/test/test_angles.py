@@ -231,8 +231,8 @@ def test_without_positions_the_integrated_speed_is_named() -> None:
 
     desc = load_description("dvt")
     (seg,) = load_segments([bags / "ident-none-1"], desc)
-    assert seg.angles is None
-    view = SegmentView(seg.dt, seg.u, seg.y, seg.angles)
+    # a recording without positions (protocol version 1, or a drive that sends none)
+    view = SegmentView(seg.dt, seg.u, seg.y, None)
     theta, source = angle_of(view, np.array([0.0, 1.0]))
     assert source == ANGLE_FROM_SPEED
     np.testing.assert_allclose(theta, cumulative_trapezoid(seg.y[:, 1], dx=seg.dt, initial=0))

@@ -60,6 +60,8 @@ def describe(params_name: str, gear: int = 1) -> dict[str, Any]:
         "motor_constant": params.motor_constant,
         "brake_static_torque_at_0.125A": brake_1A,
         "brake_time_constant": params.brake.time_constant,
+        "band_gains": [float(g) for g in params.brake.gains],
+        "band_time_constants": [float(t) for t in params.brake.time_constants],
     }
 
 

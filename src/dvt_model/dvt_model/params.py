@@ -45,8 +45,9 @@ class BrakeParams:
     and the band holds ``pull * (exp(mu * wrap) - 1) * drum_radius`` [N m].
     ``time_constant`` [s] is the first-order engagement time, ``static_factor`` the ratio of the
     holding (stick) capacity to the sliding torque. ``band_gain`` [N m/A] and
-    ``band_time_constant`` [s] (3 values each, bands 1..3) override the shared law per band,
-    e.g. with identified values; ``None`` = the shared law.
+    ``band_time_constant`` [s] (3 values each, bands 1..3) override the shared law per band:
+    a unit as built (the ``physical`` set's ``brake.band_gain``/``brake.band_time_constant``)
+    or identified values; ``None`` = the shared law.
     """
 
     motor_constant: float
@@ -172,6 +173,14 @@ def _triple(data: Mapping[str, Any], key: str, where: str, *, positive: bool = F
     return (out[0], out[1], out[2])
 
 
+def _known_keys(data: Mapping[str, Any], known: set[str], where: str) -> None:
+    """Raise :class:`ParameterError` naming the first key of ``data`` not in ``known``."""
+    unknown = sorted(set(map(str, data)) - known)
+    if unknown:
+        raise ParameterError(f"{where}{unknown[0]}: unknown key (expected one of "
+                             f"{sorted(known)})")
+
+
 def _mapping(data: Any, key: str, where: str) -> Mapping[str, Any]:
     value = data.get(key) if isinstance(data, Mapping) else None
     if not isinstance(value, Mapping):
@@ -188,11 +197,8 @@ def parse_parameters(data: Any, source: str = "<mapping>") -> TransmissionParams
     w = f"{source}: "
     if not isinstance(data, Mapping):
         raise ParameterError(f"{w}expected a mapping at the top level, got {data!r}")
-    known = {"name", "description", "lumping", "stages", "inertia", "damping",
-             "motor_constant", "brake", "planet_mass", "orbit_radius"}
-    unknown = sorted(set(map(str, data)) - known)
-    if unknown:
-        raise ParameterError(f"{w}{unknown[0]}: unknown key (expected one of {sorted(known)})")
+    _known_keys(data, {"name", "description", "lumping", "stages", "inertia", "damping",
+                       "motor_constant", "brake", "planet_mass", "orbit_radius"}, w)
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str) or not name:
         raise ParameterError(f"{w}name: expected a non-empty string, got {name!r}")
@@ -227,6 +233,9 @@ def parse_parameters(data: Any, source: str = "<mapping>") -> TransmissionParams
     zero3 = (0.0, 0.0, 0.0)
     brake_raw = _mapping(data, "brake", w)
     bw = f"{w}brake."
+    _known_keys(brake_raw, {"motor_constant", "actuation_gain", "friction_coefficient",
+                            "wrap_angle", "drum_radius", "time_constant", "static_factor",
+                            "band_gain", "band_time_constant"}, bw)
     brake = BrakeParams(
         motor_constant=_number(brake_raw, "motor_constant", bw, positive=True),
         actuation_gain=_number(brake_raw, "actuation_gain", bw, positive=True),
@@ -235,6 +244,10 @@ def parse_parameters(data: Any, source: str = "<mapping>") -> TransmissionParams
         drum_radius=_number(brake_raw, "drum_radius", bw, positive=True),
         time_constant=_number(brake_raw, "time_constant", bw, positive=True),
         static_factor=_number(brake_raw, "static_factor", bw, positive=True, default=1.0),
+        band_gain=(_triple(brake_raw, "band_gain", bw, positive=True)
+                   if "band_gain" in brake_raw else None),
+        band_time_constant=(_triple(brake_raw, "band_time_constant", bw, positive=True)
+                            if "band_time_constant" in brake_raw else None),
     )
     params = TransmissionParams(
         name=name,

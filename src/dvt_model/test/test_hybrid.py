@@ -144,6 +144,6 @@ def test_per_band_brake_gain_and_time_constant() -> None:
     expected = target * (1.0 - np.exp(-0.02 / np.array([0.01, 0.02, 0.05])))
     np.testing.assert_allclose(state.capacity, expected, rtol=1e-9)
     # without overrides the shared law applies to every band
-    plain = params.brake
+    plain = replace(params.brake, band_gain=None, band_time_constant=None)
     np.testing.assert_allclose(plain.gains, [g, g, g])
     np.testing.assert_allclose(plain.time_constants, [plain.time_constant] * 3)

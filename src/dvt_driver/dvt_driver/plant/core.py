@@ -319,6 +319,10 @@ class PlantSim:
                 "encoders": {"sun_counts_per_rev": self.sensors.counts_per_rev,
                              "output_counts_per_rev": self.sensors.output_counts_per_rev,
                              "output_member": "carrier3"},
+                # the band law the plant runs (the parameter set's, or a `bands` draw)
+                "bands": {"gain": [float(g) for g in self.physics.brake.gains],
+                          "time_constant": [float(t) for t in
+                                            self.physics.brake.time_constants]},
                 "load": (None if (load := self.physics.initial_load) is None
                          else {"name": load.name, **load.to_mapping()})}
 

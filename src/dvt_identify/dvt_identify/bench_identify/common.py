@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dvt_identify.errors import BenchError
+from dvt_model import BLAS_THREAD_VARIABLES
 from dvt_model.errors import BagError
 from dvt_model.recording import is_bag, read_run, read_run_info, read_truth, write_run
 
@@ -27,7 +28,8 @@ DEFAULT_ESTIMATION = "ident-none-1"
 DEFAULT_VALIDATION = "ident-none-2"
 """The committed recording used for validation by default."""
 
-BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+BLAS_ENV = BLAS_THREAD_VARIABLES
+"""The BLAS thread-count variables (one list: :data:`dvt_model.BLAS_THREAD_VARIABLES`)."""
 
 
 def blas_env() -> dict[str, str | None]:

@@ -24,6 +24,7 @@ full-rate validation run. ``loop_seconds`` is that call (as for the short record
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -75,9 +76,24 @@ def run_lengths(hours: float, run_minutes: float = RUN_MINUTES) -> list[float]:
     return out
 
 
+def plant_fingerprint() -> str:
+    """Short hash of what the cached recordings depend on beyond their lengths and seed: the
+    ``physical`` parameter set the plant runs and the generator script (a changed plant or
+    recipe records anew instead of reusing a stale cache)."""
+    from dvt_model.errors import ParameterError
+    from dvt_model.presets import read_yaml_setting
+
+    data, _ = read_yaml_setting("physical", what="parameter set", error=ParameterError,
+                                package="dvt_model", directory="param_sets")
+    h = hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode())
+    h.update(generator_script().read_bytes())
+    return h.hexdigest()[:10]
+
+
 def recording_dir(cache: Path, hours: float, run_minutes: float, seed: int) -> Path:
-    """The cache directory of one recording configuration."""
-    return cache / f"watch-{hours:g}h-{run_minutes:g}min-seed{seed}"
+    """The cache directory of one recording configuration (:func:`plant_fingerprint` in its
+    name)."""
+    return cache / f"watch-{hours:g}h-{run_minutes:g}min-seed{seed}-{plant_fingerprint()}"
 
 
 def generator_script() -> Path:
