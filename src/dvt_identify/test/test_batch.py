@@ -5,10 +5,12 @@ missing bag), and the console script on the workers of a running scheduler."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -375,20 +377,81 @@ def test_no_scheduler_is_an_error_and_nothing_is_written(
 
 
 # ------------------------------------------------------------------------- the console script
-def test_cli_on_a_running_scheduler(lab: Path, tmp_path: Path, no_leftover: None) -> None:
-    """``dvt-identify-batch --scheduler`` runs the jobs on the workers of a running cluster
-    (here one this test starts): exit 3 as a job failed, a line per job, the summary."""
-    from distributed import Client, LocalCluster
+DASK = Path(sys.executable).parent / "dask"
 
+
+def _stop(procs: list[subprocess.Popen[str]]) -> None:
+    """SIGTERM each process (the worker CLI closes its nannies and workers), wait up to 30 s,
+    then kill what is left of its tree."""
+    for p in reversed(procs):
+        tree: list[psutil.Process] = []
+        with contextlib.suppress(psutil.NoSuchProcess):
+            tree = psutil.Process(p.pid).children(recursive=True)
+        p.terminate()
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(timeout=10)
+        for c in tree:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                c.kill()
+        psutil.wait_procs(tree, timeout=10)
+
+
+def _wait_for_line(path: Path, needle: str, count: int, proc: subprocess.Popen[str],
+                   deadline_s: float) -> str:
+    """Poll the log ``path`` until ``needle`` appears ``count`` times; fail naming the log if
+    ``proc`` ends or the deadline passes first."""
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        text = path.read_text() if path.exists() else ""
+        if text.count(needle) >= count:
+            return text
+        assert proc.poll() is None, f"{proc.args!r} ended ({proc.returncode}): {text}"
+        time.sleep(0.2)
+    raise AssertionError(f"{path}: {needle!r} not seen {count} time(s) in {deadline_s} s: "
+                         f"{path.read_text() if path.exists() else ''}")
+
+
+@pytest.fixture
+def running_cluster(tmp_path: Path) -> Iterator[tuple[str, psutil.Process]]:
+    """A cluster started the way a lab starts one: ``dask scheduler`` and ``dask worker``
+    (two single-threaded worker processes) as processes of their own on 127.0.0.1; yields
+    the scheduler's address and the worker command's process, stops both afterwards."""
+    sched_file = tmp_path / "scheduler.json"
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        with open(tmp_path / "scheduler.log", "w") as log:
+            procs.append(subprocess.Popen(
+                [str(DASK), "scheduler", "--host", "127.0.0.1", "--port", "0",
+                 "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(sched_file)],
+                stdout=log, stderr=subprocess.STDOUT, text=True))
+        _wait_for_line(tmp_path / "scheduler.log", "Scheduler at:", 1, procs[0], 120)
+        # the file is written before the log line; read it only once the line is there
+        address = json.loads(sched_file.read_text())["address"]
+        with open(tmp_path / "worker.log", "w") as log:
+            procs.append(subprocess.Popen(
+                [str(DASK), "worker", address, "--nworkers", "2", "--nthreads", "1",
+                 "--host", "127.0.0.1", "--no-dashboard"],
+                stdout=log, stderr=subprocess.STDOUT, text=True))
+        _wait_for_line(tmp_path / "worker.log", "Registered to:", 2, procs[1], 120)
+        yield address, psutil.Process(procs[1].pid)
+    finally:
+        _stop(procs)
+
+
+def test_cli_on_a_running_scheduler(lab: Path, tmp_path: Path, no_leftover: None,
+                                    running_cluster: tuple[str, psutil.Process]) -> None:
+    """``dvt-identify-batch --scheduler`` runs the jobs on the workers of a running cluster
+    (here one this test starts with ``dask scheduler`` and ``dask worker``): exit 3 as a job
+    failed, a line per job, the summary; the jobs ran in those worker processes."""
+    address, worker_cli = running_cluster
     path = manifest(lab, [OK_JOBS[1], MISSING])
     out = tmp_path / "out"
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0") as cluster:
-        r = subprocess.run([str(EXE), str(path), "--out", str(out), "--scheduler",
-                            cluster.scheduler_address], capture_output=True, text=True,
-                           timeout=240, check=False)
-        with Client(cluster) as client:
-            worker_pids = set(client.run(os.getpid).values())
+    worker_pids = {p.pid for p in worker_cli.children(recursive=True)}
+    r = subprocess.run([str(EXE), str(path), "--out", str(out), "--scheduler", address],
+                       capture_output=True, text=True, timeout=240, check=False)
     assert r.returncode == 3, r.stderr
     assert r.stdout.splitlines()[-1] == (f"2 job(s): 1 ok, 1 failed; summary: "
                                          f"{out}/summary.md")
@@ -397,10 +460,10 @@ def test_cli_on_a_running_scheduler(lab: Path, tmp_path: Path, no_leftover: None
     assert any("lost failed in " in ln and ln.endswith(f"{lab / 'nope'}: bag not found")
                for ln in progress), progress
     s = json.loads((out / "summary.json").read_text())
-    assert s["cluster"] == {"kind": "scheduler", "address": cluster.scheduler_address,
+    assert s["cluster"] == {"kind": "scheduler", "address": address,
                             "workers": 2, "threads": [1]}
     assert [(j["name"], j["status"]) for j in s["jobs"]] == [("joint2", OK), ("lost", FAILED)]
-    assert {j["worker"]["pid"] for j in s["jobs"]} <= worker_pids
+    assert {j["worker"]["pid"] for j in s["jobs"]} <= worker_pids, worker_pids
     assert (out / "joint2" / "report.md").is_file()
     # a cluster started with Dask's defaults: its workers are flagged, not refused
     assert s["warnings"] == [f"worker {a}: MALLOC_TRIM_THRESHOLD_=65536 (Dask's default): "
