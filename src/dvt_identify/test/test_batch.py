@@ -6,6 +6,7 @@ missing bag), and the console script on the workers of a running scheduler."""
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import os
 import subprocess
@@ -374,6 +375,11 @@ def test_no_scheduler_is_an_error_and_nothing_is_written(
         run_batch(jobs, tmp_path / "out", scheduler=address, connect_timeout_s=2.0)
     assert str(exc.value).startswith(message), str(exc.value)
     assert not (tmp_path / "out").exists()
+    # finalise the client that failed to connect here: its __del__ closes it synchronously,
+    # and run by a later collection it would block whichever thread allocates then (suspected
+    # in a CI run where a LocalCluster's IO-loop thread did not start in 10 s)
+    del exc
+    gc.collect()
 
 
 # ------------------------------------------------------------------------- the console script
