@@ -25,8 +25,10 @@
    of those that pass, the simplest one that is as good on validation as the one with the largest
    LR is accepted (:func:`~dvt_identify.selection.choose`: a local score can misjudge a large
    effect, the refit cannot; and two laws that fit the data equally well are told apart by
-   parsimony, not by a likelihood difference within the noise). Repeat until a round accepts
-   nothing.
+   parsimony, not by a likelihood difference within the noise). After an acceptance, each
+   effect accepted in an earlier round is tried again, by the same test, against the model
+   refitted without it (:func:`_recheck`): one a later effect explains is taken out. Repeat
+   until a round accepts nothing.
 
 With coloured residuals LM and LR overstate significance (they assume white errors), which is why
 acceptance also needs the validation test (its variance is HAC, so colour does not fool it).
@@ -268,6 +270,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     # a drift the window refits may owe to a static effect in a member's angle: until one such
     # effect is accepted and clears it, only those are tried (Effect.depends_on_angle)
     unexplained: DriftReport | None = None
+    explained_drift = ""  # the label of the effect that explained it
     if cfg.drift_windows >= 3:
         drift = drift_check(base_fit, fit_segs, cfg.drift_windows, cfg.alpha,
                             cfg.drift_min_change)
@@ -362,9 +365,14 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                 "angle, seen differently by windows of different angle coverage)")
             say(notes[-1])
             drift, unexplained = again, None
+            explained_drift = best.score.label  # it stays: the recheck does not try it again
         say(f"round {rnd}: ACCEPTED {best.score.label}")
         current = best.stage
         remaining = [c for c in remaining if c.label() != best.score.label]
+        kept = [d for d in decisions if d.accepted and d.score.label != explained_drift]
+        if len(kept) >= 2 and kept[-1] is best and unexplained is None:
+            current = _recheck(current, kept, fit_segs, est, val, same_rate, cfg, rnd, say,
+                               folds, notes)
     if unexplained is not None:
         notes.append(_drift_veto(unexplained, tried=True))
     return IdentificationResult(
@@ -489,3 +497,53 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
                     val_fit_before=before, val_fit_after=after, validation=dm, stage=stage,
                     explained_share=share, likely=likely)
 
+
+
+def _recheck(current: Stage, kept: Sequence[Decision], fit_segs: Sequence[Segment],
+             est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
+             rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None,
+             notes: list[str]) -> Stage:
+    """After an acceptance, each effect accepted in an earlier round must pass the same test
+    again against the model with all the others (refitted without it, from the current
+    optimum), or at least be "likely, not proven" there (a large, admissible gain that misses
+    significance): an effect a later one explains is taken out (its decision says so) and
+    the model without it goes on. The last accepted one passed against all the others; an
+    effect that explained a drift is not in ``kept`` (without it the loop would stop)."""
+    for dec in kept[:-1]:
+        model = current.fit.model
+        i = next((k for k, e in enumerate(model.effects) if e is dec.score.effect), None)
+        if i is None:
+            continue
+        sl = model.effect_slice(i)
+        theta = np.delete(current.fit.theta_, np.arange(sl.start, sl.stop))
+        without = OEModel(model.structure, model.effects[:i] + model.effects[i + 1:])
+        label = dec.score.label
+        say(f"round {rnd}: recheck {label}: refit without it")
+        try:
+            fit = OEFit(without, starts=1, seed=cfg.seed + rnd, theta0=theta,
+                        weights=current.fit.weights_, progress=say,
+                        init_window=cfg.init_window).fit(fit_segs)
+            stage = make_stage(f"-{label}", fit, est, val, same_rate, cfg.lags,
+                               _folds(fit, fit_segs, folds, cfg.seed + rnd))
+        except FitError as exc:
+            say(f"round {rnd}: recheck {label}: refit without it failed ({exc}); kept")
+            continue
+        again = _try(stage, dec.score, fit_segs, est, val, same_rate, cfg, rnd, say, folds)
+        if again.accepted or again.likely:
+            # a large gain that only misses significance against the others is no reason to
+            # take out what passed (measured: a true windage that cut the validation error by
+            # 94 % at p = 0.013 against the model without it)
+            say(f"round {rnd}: recheck {label}: "
+                + ("still passes" if again.accepted else "likely, not proven") + "; kept")
+            continue
+        dec.accepted = False
+        dec.removed_in = rnd
+        dec.reason = (f"accepted in round {dec.round} ({dec.reason}); removed in round {rnd}: "
+                      f"added again to the model without it, it no longer passes "
+                      f"({again.reason})")
+        notes.append(f"removed {label} in round {rnd}: the effects accepted after it explain "
+                     f"what it did (validation fit {current.val.mean_fit:.2f} % with it, "
+                     f"{stage.val.mean_fit:.2f} % without it refitted)")
+        say(notes[-1])
+        current = stage
+    return current

@@ -368,6 +368,10 @@ class OEModel:
         """Initial values of every parameter, shape (p,)."""
         return np.array([s.initial for s in self.specs], dtype=float)
 
+    def effect_slice(self, i: int) -> slice:
+        """Where effect ``i``'s parameters sit in ``theta``."""
+        return self._slices[i]
+
     def effect_params(self, theta: Array) -> list[Array]:
         """Each effect's slice of ``theta``."""
         return [theta[s] for s in self._slices]

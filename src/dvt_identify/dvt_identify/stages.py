@@ -163,6 +163,8 @@ class Decision:
             removed (:func:`~dvt_identify.selection.explained_share`; rule (d)).
         likely: rejected only for want of significance although its gain is large
             (:data:`LIKELY_GAIN`): "likely, not proven".
+        removed_in: the round whose recheck took it out again (a later effect explains it;
+            ``accepted`` is then false), else ``None``.
     """
 
     round: int
@@ -179,6 +181,7 @@ class Decision:
     stage: Stage | None = None
     explained_share: float = math.nan
     likely: bool = False
+    removed_in: int | None = None
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready summary (with the validation test's gain, statistic and p-value)."""
@@ -191,7 +194,7 @@ class Decision:
             "validation_fit_gain": self.val_fit_after - self.val_fit_before,
             "explained_share": self.explained_share if math.isfinite(self.explained_share)
             else None, "min_explained_share": MIN_EXPLAINED,
-            "likely_not_proven": self.likely}
+            "likely_not_proven": self.likely, "removed_in_round": self.removed_in}
         if self.validation is not None:
             v = self.validation
             out["validation_test"] = {

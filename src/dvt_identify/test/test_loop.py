@@ -113,3 +113,55 @@ def test_coulomb_accepted_and_recovered(tmp_path: Path) -> None:
     for name in ("fit_v.png", "resid_v.png", "candidates.png", "linear_step_bode.png"):
         assert (tmp_path / name).stat().st_size > 1000, name
     assert paths["md"].read_text().count("coulomb_friction") >= 2
+
+
+def _accepted_pair(first: str, second: str) -> tuple[Any, list[Any], list[Segment],
+                                                     list[Segment], LoopConfig]:
+    """A cart with Coulomb friction (Fc 6 N) fitted with two effects as if the loop had
+    accepted ``first`` in round 1 and ``second`` in round 2: the stage and the two decisions."""
+    from dvt_identify.fit import OEFit
+    from dvt_identify.scoring import CandidateScore
+    from dvt_identify.stages import Decision, make_stage
+
+    desc = description()
+    cfg = LoopConfig.from_options(desc.fit)
+    est, val = [make(1, fc=6.0)], [make(2, fc=6.0)]
+    kw = {"offset": True} if "coulomb_friction" in (first, second) else {}
+    effects = [make_effect(n, "v", ["v"], ["force"], options=kw if n == "coulomb_friction"
+                           else None) for n in (first, second)]
+    fit = OEFit(OEModel(desc.structure, effects), starts=1, seed=0).fit(est)
+    stage = make_stage("+both", fit, est, val, True, cfg.lags)
+    decisions = [Decision(k + 1, CandidateScore(e, 0.5, 0.5, 100.0, 1, 0.0, 0.7, 0.7, "", [],
+                                                {}), True, "passes")
+                 for k, e in enumerate(effects)]
+    return stage, decisions, est, val, cfg
+
+
+def test_an_effect_a_later_one_explains_is_taken_out() -> None:
+    """Accepted in round 1, the direction-dependent viscous law is a stand-in for the cart's
+    Coulomb friction accepted in round 2: added again to the model without it, it no longer
+    passes, so the loop takes it out and says so in its decision and a note."""
+    from dvt_identify.loop import _recheck
+
+    stage, decisions, est, val, cfg = _accepted_pair("asymmetric_friction", "coulomb_friction")
+    notes: list[str] = []
+    out = _recheck(stage, decisions, est, est, val, True, cfg, 2, lambda _m: None, None, notes)
+    assert [e.name for e in out.effects] == ["coulomb_friction"]
+    assert [d.accepted for d in decisions] == [False, True]
+    assert decisions[0].reason.startswith("accepted in round 1 (passes); removed in round 2: ")
+    assert decisions[0].removed_in == 2 and decisions[0].as_dict()["removed_in_round"] == 2
+    assert notes and notes[0].startswith("removed asymmetric_friction@v in round 2: ")
+    assert out.parameters()["Fc"] == pytest.approx(6.0, rel=0.05)
+
+
+def test_a_true_effect_is_kept_when_another_is_accepted_after_it() -> None:
+    """The cart's Coulomb friction accepted in round 1 still passes against the model with a
+    later effect: the recheck keeps it and changes nothing."""
+    from dvt_identify.loop import _recheck
+
+    stage, decisions, est, val, cfg = _accepted_pair("coulomb_friction", "asymmetric_friction")
+    notes: list[str] = []
+    out = _recheck(stage, decisions, est, est, val, True, cfg, 2, lambda _m: None, None, notes)
+    assert out is stage and notes == []
+    assert [d.accepted for d in decisions] == [True, True]
+    assert [d.removed_in for d in decisions] == [None, None]
