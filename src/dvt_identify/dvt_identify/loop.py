@@ -498,7 +498,6 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
                     explained_share=share, likely=likely)
 
 
-
 def _recheck(current: Stage, kept: Sequence[Decision], fit_segs: Sequence[Segment],
              est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
              rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None,
