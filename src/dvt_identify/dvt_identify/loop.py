@@ -370,7 +370,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         current = best.stage
         remaining = [c for c in remaining if c.label() != best.score.label]
         kept = [d for d in decisions if d.accepted and d.score.label != explained_drift]
-        if len(kept) >= 2 and kept[-1] is best and unexplained is None:
+        if len(kept) >= 2 and kept[-1] is best:  # the drift is explained here
             current = _recheck(current, kept, fit_segs, est, val, same_rate, cfg, rnd, say,
                                folds, notes)
     if unexplained is not None:
