@@ -14,6 +14,9 @@ holding torque needed is within ``static_factor * T_cap``.
 
 from __future__ import annotations
 
+import math
+from typing import overload
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -42,6 +45,28 @@ def engagement_profile(t: ArrayLike, time_constant: float) -> NDArray[np.float64
     return np.asarray(np.where(tt > 0.0, -np.expm1(-np.clip(tt, 0.0, None) / time_constant), 0.0))
 
 
+@overload
+def lag_mean_factor(dt: float, time_constant: float) -> float: ...
+
+
+@overload
+def lag_mean_factor(dt: float, time_constant: NDArray[np.float64]) -> NDArray[np.float64]: ...
+
+
+def lag_mean_factor(dt: float, time_constant: float | NDArray[np.float64]
+                    ) -> float | NDArray[np.float64]:
+    """Mean over a step ``dt`` [s] of a first-order lag's remaining gap, as a share of the gap
+    at the step start: ``(1 - exp(-dt / tau)) tau / dt`` (written with ``expm1``), a float for
+    a float ``time_constant`` [s], else its shape. A lag from ``x0`` toward a held ``x``
+    averages ``x + (x0 - x) lag_mean_factor(dt, tau)`` over the step: the band capacities
+    (:func:`capacity_step`), the plant's motor-current lag and band release, and the
+    identifier's engagement transform (``dvt_identify.effects.brakes``) hold this one mean."""
+    if isinstance(time_constant, np.ndarray):
+        return np.asarray(-np.expm1(-dt / time_constant) * time_constant / dt)
+    tau = float(time_constant)
+    return -math.expm1(-dt / tau) * tau / dt
+
+
 def capacity_step(capacity: NDArray[np.float64], target: NDArray[np.float64], dt: float,
                   time_constant: float | NDArray[np.float64]
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -57,7 +82,7 @@ def capacity_step(capacity: NDArray[np.float64], target: NDArray[np.float64], dt
     """
     e = np.exp(-dt / time_constant)
     end = target + (capacity - target) * e
-    mean = target + (capacity - target) * (1.0 - e) * time_constant / dt
+    mean = target + (capacity - target) * lag_mean_factor(dt, time_constant)
     return end, mean
 
 
@@ -72,8 +97,8 @@ class BandLaw:
     def __init__(self, brake: BrakeParams) -> None:
         self.gains: list[float] = [float(g) for g in brake.gains]
         self.time_constants = np.asarray(brake.time_constants, dtype=float)
-        self._tau: list[float] = self.time_constants.tolist()
-        self._decay: dict[float, list[float]] = {}  # exp(-dt / tau) per band by dt
+        # exp(-dt / tau) and lag_mean_factor(dt, tau) per band, by dt
+        self._decay: dict[float, tuple[list[float], list[float]]] = {}
 
     def targets(self, current: list[float]) -> list[float]:
         """Static torque of each band [N m] for the three brake-motor currents [A]
@@ -84,16 +109,17 @@ class BandLaw:
              ) -> tuple[list[float], list[float]]:
         """(capacity at the step end, mean capacity over the step) [N m], 3 each
         (:func:`capacity_step` with these time constants)."""
-        decay = self._decay.get(dt)
-        if decay is None:
-            decay = np.exp(-dt / self.time_constants).tolist()
+        kept = self._decay.get(dt)
+        if kept is None:
+            kept = (np.exp(-dt / self.time_constants).tolist(),
+                    lag_mean_factor(dt, self.time_constants).tolist())
             if len(self._decay) < 1024:
-                self._decay[dt] = decay
+                self._decay[dt] = kept
         end = []
         mean = []
-        for c, x, e, tau in zip(capacity, target, decay, self._tau, strict=True):
+        for c, x, e, f in zip(capacity, target, kept[0], kept[1], strict=True):
             end.append(x + (c - x) * e)
-            mean.append(x + (c - x) * (1.0 - e) * tau / dt)
+            mean.append(x + (c - x) * f)
         return end, mean
 
 

@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from dvt_driver.errors import PlantError
 from dvt_driver.plant.hidden import Change, HiddenEffects, WetBrake, scheduled_values
 from dvt_model import laws
-from dvt_model.brake import capacity_step
+from dvt_model.brake import capacity_step, lag_mean_factor
 from dvt_model.dynamics import rigid_model
 from dvt_model.hybrid import HybridModel, HybridState
 from dvt_model.load import JointLoad, load_joint_load
@@ -268,7 +268,7 @@ class Transmission:
         if tau > 0.0:
             e = math.exp(-h / tau)
             i1 = i_ref + (i0 - i_ref) * e
-            i_mean = i_ref + (i0 - i_ref) * (1.0 - e) * tau / h
+            i_mean = i_ref + (i0 - i_ref) * lag_mean_factor(h, tau)
         else:
             i1 = i_mean = i_ref
         w0 = self.state.omega
@@ -402,7 +402,7 @@ class WetBrakeEngagement:
             if tgt <= self.on_threshold:
                 self.applied_time[i] = 0.0
                 end[i] = cap0 * e
-                mean[i] = cap0 * (1.0 - e) * shape.release_time / dt
+                mean[i] = cap0 * lag_mean_factor(dt, shape.release_time)
                 continue
             t0 = float(self.applied_time[i])
             t1 = t0 + dt

@@ -16,6 +16,7 @@ import numpy as np
 
 from dvt_identify.effects.base import Array, BuildContext, Effect, ParamSpec, SegmentView
 from dvt_identify.errors import DescriptionError
+from dvt_model.brake import lag_mean_factor
 
 
 @dataclass
@@ -51,11 +52,9 @@ class BrakeEngagement(Effect):
         out = u.copy()
         col = np.ascontiguousarray(u[:, self.index])
         # u_eff[k+1] = e u_eff[k] + (1 - e) u[k], u_eff[0] = u[0] (compiled recursion); held:
-        # the step mean u[k] + (u_eff[k] - u[k]) (1 - e) tau / dt (capacity_step's mean, with
-        # expm1: calling capacity_step's 1 - e instead changed the one-sided differences of this
-        # transform enough to flip tests/test_position_effects.py's gravity_arm verdict)
+        # the step mean u[k] + (u_eff[k] - u[k]) lag_mean_factor (capacity_step's mean)
         start = first_order_lag(col, e)
-        out[:, self.index] = col + (start - col) * (-math.expm1(-dt / tau) * tau / dt)
+        out[:, self.index] = col + (start - col) * lag_mean_factor(dt, tau)
         return out
 
     def time_constants(self, p: Array) -> tuple[float, ...]:
