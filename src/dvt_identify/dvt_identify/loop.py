@@ -79,7 +79,7 @@ from scipy import stats
 from dvt_identify.data import Segment
 from dvt_identify.description import Description
 from dvt_identify.drift import DriftReport, drift_check
-from dvt_identify.effects import SegmentView
+from dvt_identify.effects import Effect, SegmentView
 from dvt_identify.errors import DataError, FitError
 from dvt_identify.fit import OEFit, Progress
 from dvt_identify.fitrate import fit_segments
@@ -318,7 +318,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
             say(f"round {rnd}: no candidate scores significantly (LM p < {cfg.alpha})")
         trials = []
         trials.extend(_refits(current, screened[: cfg.max_tries_per_round], fit_segs, est,
-                              val, same_rate, cfg, rnd, say, folds, floors))
+                              val, same_rate, cfg, rnd, say, folds, floors,
+                              unexplained is not None))
         if not any(d.accepted for d in trials) and len(named) < len(pool):
             from dvt_identify.unlisted import propose
 
@@ -333,7 +334,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                 scores.append(prop)
                 say(f"round {rnd}: refit with {prop.label}")
                 dec = _try(current, prop, fit_segs, est, val, same_rate, cfg, rnd, say,
-                           folds, floors)
+                           folds, floors, unexplained is not None)
                 say(f"round {rnd}: {prop.label}: "
                     f"{'passes' if dec.accepted else 'rejected'} ({dec.reason})")
                 trials.append(dec)
@@ -407,12 +408,13 @@ def _fmt(f: Figures) -> str:
 def _refits(current: Stage, scores: Sequence[CandidateScore], fit_segs: Sequence[Segment],
             est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
             rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None,
-            floors: Sequence[Any] | None) -> list[Decision]:
+            floors: Sequence[Any] | None, bent: bool = False) -> list[Decision]:
     """A round's refits (:func:`_try`), independent of each other: shared between the cores
     (:func:`dvt_identify.parallel.fork_map`), their decisions in the order of ``scores``."""
     def one(sc: CandidateScore) -> Decision:
         say(f"round {rnd}: refit with {sc.label}")
-        dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say, folds, floors)
+        dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say, folds, floors,
+                   bent)
         say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
             f"({dec.reason})")
         return dec
@@ -422,7 +424,11 @@ def _refits(current: Stage, scores: Sequence[CandidateScore], fit_segs: Sequence
 def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
          est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
          rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None = None,
-         floors: Sequence[Any] | None = None) -> Decision:
+         floors: Sequence[Any] | None = None, bent: bool = False) -> Decision:
+    """Refit ``current`` with the candidate ``sc`` and test it (the module docstring's
+    evidence). ``bent``: the current optimum may have bent itself towards the missing effect
+    (a drift not yet explained): the refit also starts from every parameter's prior with each
+    of the candidate's variants (:func:`_prior_starts`)."""
     old = current.fit
     model = OEModel(old.model.structure, (*old.model.effects, sc.effect))
     theta0 = np.concatenate([old.theta_, [p.initial for p in sc.effect.params]])
@@ -433,6 +439,8 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
         prior = theta0.copy()
         prior[: old.model.n_struct] = [p.initial for p in old.model.specs[: old.model.n_struct]]
         theta0, extra = prior, [theta0]
+    if bent:
+        extra.extend(_prior_starts(old.model, sc.effect, fit_segs[0]))
     if cfg.refit_starts > 1:
         alt = theta0.copy()
         alt[len(old.theta_):] = [0.5 * p.initial if p.initial != p.null else p.initial
@@ -496,6 +504,21 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
     return Decision(rnd, sc, ok, reason, lr=lr, lr_threshold=thr, dof=k, delta_bic=dbic,
                     val_fit_before=before, val_fit_after=after, validation=dm, stage=stage,
                     explained_share=share, likely=likely)
+
+
+def _prior_starts(model: OEModel, effect: Effect, seg: Segment) -> list[Array]:
+    """Start vectors of ``model`` plus ``effect``: every parameter of ``model`` at its prior
+    (the structure's and the declared effects' initial values, not the current optimum), the
+    effect at its initial values with each of its scanned variants (one start each)."""
+    base = np.concatenate([model.initial(), [p.initial for p in effect.params]])
+    names = [*model.names, *(p.name for p in effect.params)]
+    out = []
+    for _label, values in effect.variants(SegmentView(seg.dt, seg.u, seg.y, seg.angles)):
+        start = base.copy()
+        for name, value in values.items():
+            start[names.index(name)] = value
+        out.append(start)
+    return out
 
 
 def _recheck(current: Stage, kept: Sequence[Decision], fit_segs: Sequence[Segment],
