@@ -13,7 +13,7 @@ from scipy import signal
 
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import Description, parse_description
-from dvt_identify.effects import make_effect
+from dvt_identify.effects import SegmentView, make_effect
 from dvt_identify.loop import LoopConfig, identify
 from dvt_identify.report import build_report, write_report
 from dvt_identify.simulation import OEModel
@@ -165,3 +165,29 @@ def test_a_true_effect_is_kept_when_another_is_accepted_after_it() -> None:
     assert out is stage and notes == []
     assert [d.accepted for d in decisions] == [True, True]
     assert [d.removed_in for d in decisions] == [None, None]
+
+
+def test_a_bent_model_is_also_refitted_from_its_priors_with_each_variant() -> None:
+    """``loop._prior_starts``: one start per scanned variant of the candidate, every parameter
+    of the model at its prior (not at the current optimum), the variant's value set."""
+    from dvt_identify.loop import _prior_starts
+
+    desc = description()
+    model = OEModel(desc.structure, [make_effect("coulomb_friction", "v", ["v"], ["force"])])
+    stribeck = make_effect("stribeck_friction", "v", ["v"], ["force"])
+    seg = make(3, fc=2.0)
+    view = SegmentView(seg.dt, seg.u, seg.y, seg.angles)
+    variants = stribeck.variants(view)
+    assert len(variants) >= 2
+    starts = _prior_starts(model, stribeck, seg)
+    assert len(starts) == len(variants)
+    names = [*model.names, *(p.name for p in stribeck.params)]
+    for start, (_label, values) in zip(starts, variants, strict=True):
+        assert start[: len(model.names)].tolist() == model.initial().tolist()
+        assert start[: 2].tolist() == [5.0, 10.0]  # the description's priors of M and Fv
+        for name, value in values.items():
+            assert start[names.index(name)] == value
+        rest = [i for i, n in enumerate(names[len(model.names):], len(model.names))
+                if n not in values]
+        assert [start[i] for i in rest] == [stribeck.params[i - len(model.names)].initial
+                                            for i in rest]
