@@ -100,13 +100,17 @@ def main() -> int:
     return 0
 
 
-def _show(title: str, fit: OEFit, truth: dict[str, float]) -> None:
+def _show(title: str, fit: OEFit, truth: dict[str, float], fmt: str = ".4g",
+          unit: str | None = None) -> None:
+    """Each parameter of ``truth``: the plant's value, the fit's with its reported std and the
+    offset in std (values in format ``fmt``; with ``unit``, the offset in that unit too)."""
     p, sd = fit.parameters(), fit.parameter_std()
     print(title)
     for name, t in truth.items():
         off = (p[name] - t) / sd[name] if sd[name] > 0 else float("inf")
-        print(f"  {name:28s} plant {t:.4g}  fit {p[name]:.4g} +- {sd[name]:.2g}"
-              f"  ({off:+.1f} std)", flush=True)
+        also = "" if unit is None else f", {p[name] - t:+{fmt}} {unit}"
+        print(f"  {name:28s} plant {t:{fmt}}  fit {p[name]:{fmt}} +- {sd[name]:.2g}"
+              f"  ({off:+.1f} std{also})", flush=True)
 
 
 def without_intersample(text: str, where: Path) -> Path:

@@ -33,14 +33,13 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from band_lags import _refit_on_own_model
+from band_lags import _refit_on_own_model, _show
 
 from dvt_driver.plant.hidden import load_hidden
 from dvt_driver.plant.offline import record_offline
 from dvt_driver.plant.settings import SensorConfig
 from dvt_driver.run.experiment_core import build
 from dvt_identify.description import load_description
-from dvt_identify.fit import OEFit
 from dvt_identify.loop import LoopConfig, identify
 from dvt_identify.pipeline import load_segments
 from dvt_model.params import load_parameters
@@ -85,10 +84,10 @@ def main() -> int:
             p = fit.parameters()
             offsets[q].append((p[A] - truth[A], p[B] - truth[B]))
             _show(f"seed {s}, fit step {r.fit_dt * 1e3:g} ms, validation fit "
-                  f"{r.baseline.val.mean_fit:.3f} %", fit, truth)
+                  f"{r.baseline.val.mean_fit:.3f} %", fit, truth, ".6f", "N m")
             if a.own_model:
                 _show("  the same fit on the identifier's own model at the plant's a, b",
-                      _refit_on_own_model(fit, truth), truth)
+                      _refit_on_own_model(fit, truth), truth, ".6f", "N m")
     for q, rows in offsets.items():
         m = np.mean(rows, axis=0)
         print(f"fit_decimate {q or 'auto'}: mean offset over {len(rows)} seeds "
@@ -106,15 +105,6 @@ def with_declared_arm(text: str, reduction: float, where: Path) -> Path:
     path = where / "dvt-declared-arm.yaml"
     path.write_text(text.replace(key, f"\n{line}{key}"))
     return path
-
-
-def _show(title: str, fit: OEFit, truth: dict[str, float]) -> None:
-    p, sd = fit.parameters(), fit.parameter_std()
-    print(title)
-    for name, t in truth.items():
-        off = (p[name] - t) / sd[name] if sd[name] > 0 else float("inf")
-        print(f"  {name:20s} plant {t:.6f}  fit {p[name]:.6f} +- {sd[name]:.2g}"
-              f"  ({off:+.2f} std, {p[name] - t:+.6f} N m)", flush=True)
 
 
 if __name__ == "__main__":
