@@ -69,6 +69,36 @@ the optimum are paid on a part of the data (the full-data optimum is the one rea
 start near it; an hour converges in a few full-data iterations instead of forty)."""
 
 
+STALL_PASSES = 4
+"""A long recording's first start on all of it stops when its last :data:`STALL_PASSES`
+evaluations (passes over the data) lowered the cost by less than :data:`STALL_RTOL` of it
+(:class:`_Stall`)."""
+STALL_RTOL = 1e-6
+"""See :data:`STALL_PASSES`. An hour at 200 Hz has a cost ragged at about 1e-5 of itself near
+its optimum (the dry-friction and band branches switch: trial points a trust-region step away
+cost 1.2e-5 more), where ``ftol`` 1e-9 kept the solver on trial steps for 16 of its 27 passes
+to lower the cost by 5e-8 of itself."""
+
+
+class _Stall:
+    """``least_squares`` callback (called after each iteration, with the evaluations so far
+    and the cost of the accepted point): stops the solver when the cost of the last ``passes``
+    evaluations is not below the best before them by ``rtol`` of it."""
+
+    def __init__(self, passes: int = STALL_PASSES, rtol: float = STALL_RTOL) -> None:
+        self.passes, self.rtol = passes, rtol
+        self.seen: list[tuple[int, float]] = []
+        self.stalled = False
+
+    def __call__(self, intermediate_result: Any) -> None:
+        nfev, cost = int(intermediate_result.nfev), float(intermediate_result.cost)
+        before = [c for n, c in self.seen if n <= nfev - self.passes]
+        self.seen.append((nfev, cost))
+        if before and min(before) - cost < self.rtol * cost:
+            self.stalled = True
+            raise StopIteration
+
+
 def _first_part(segments: Sequence[Segment]) -> list[Segment]:
     """The segments' first :data:`PREFIT_SAMPLES` samples (whole segments in order, the last
     one cut), or ``[]`` when there are not more samples than that."""
@@ -496,13 +526,13 @@ class OEFit(StartPoints):
                                f"structure's inputs {list(st.input_names)}")
 
     def _solve(self, problem: _Problem, st: Array, z0: Array, budget: int | None,
-               segs: Sequence[Segment]) -> Any:
+               segs: Sequence[Segment], stall: _Stall | None = None) -> Any:
         """``least_squares`` over the free parameters and initial states from ``z0``; a
         problem whose dense Jacobian would be large is handed to it by its triangular factor,
         built segment by segment (:mod:`dvt_identify.streamls`: the same steps, memory that
-        does not grow with the recording)."""
+        does not grow with the recording). ``stall``: its callback (:class:`_Stall`)."""
         if not dense_ok(sum(sg.y.size for sg in segs), z0.size):
-            return self._solve_factored(problem, st, z0, budget, segs)
+            return self._solve_factored(problem, st, z0, budget, segs, stall)
 
         def fun(z: Array) -> Array:
             theta, x0s = self._unpack(z, st, problem.nseg, segs)
@@ -513,10 +543,10 @@ class OEFit(StartPoints):
             return self._jacobian(theta, segs, x0s, problem.w)
         return least_squares(fun, z0, jac=jac, bounds=(problem.zlo, problem.zhi),
                              x_scale="jac", method="trf", max_nfev=budget, ftol=1e-9,
-                             xtol=1e-9, gtol=1e-9)
+                             xtol=1e-9, gtol=1e-9, callback=stall)
 
     def _solve_factored(self, problem: _Problem, st: Array, z0: Array, budget: int | None,
-                        segs: Sequence[Segment]) -> Any:
+                        segs: Sequence[Segment], stall: _Stall | None = None) -> Any:
         """:meth:`_solve` for a large problem (:class:`~dvt_identify.streamls.Factored`); the
         result's ``fun`` and ``jac`` are the factored problem's (``factored`` is set)."""
         def blocks(z: Array) -> Iterator[Block]:
@@ -530,7 +560,7 @@ class OEFit(StartPoints):
         fac = Factored(blocks, z0.size, thunks if len(segs) > 1 else None)
         r = least_squares(fac.residual, z0, jac=fac.jacobian,
                           bounds=(problem.zlo, problem.zhi), x_scale="jac", method="trf",
-                          max_nfev=budget, ftol=1e-9, xtol=1e-9, gtol=1e-9)
+                          max_nfev=budget, ftol=1e-9, xtol=1e-9, gtol=1e-9, callback=stall)
         r.factored = True
         return r
 
@@ -560,6 +590,13 @@ class OEFit(StartPoints):
                 self._say(f"first start on the first {sum(s.n for s in part)} samples: cost "
                           f"{rp.cost:.6g} after {rp.nfev} evaluations; now on all "
                           f"{sum(s.n for s in problem.segments)}")
+                stall = _Stall()
+                r = self._solve(problem, st, z0, self.max_nfev, problem.segments, stall)
+                if stall.stalled:
+                    self._say(f"first start on all samples stopped after {r.nfev} evaluations: "
+                              f"the last {STALL_PASSES} lowered the cost by less than "
+                              f"{STALL_RTOL:g} of it")
+                return r
             return self._solve(problem, st, z0, self.max_nfev, problem.segments)
         r = self._solve(problem, st, z0, problem.screen_nfev, problem.screen_segments)
         r.cost = self._cost(problem, st, r.x) if problem.q > 1 else float(r.cost)
