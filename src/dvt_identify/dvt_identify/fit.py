@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from dvt_identify.data import Segment
+from dvt_identify.effects import ParamSpec
 from dvt_identify.errors import FitError
 from dvt_identify.fitrate import (
     MIN_FIT_SAMPLES,
@@ -97,6 +98,22 @@ class _Stall:
         if before and min(before) - cost < self.rtol * cost:
             self.stalled = True
             raise StopIteration
+
+
+def bound_hit(spec: ParamSpec, v: float) -> float | None:
+    """The bound of ``spec`` that the value ``v`` sits at, else ``None``: the lower bound when
+    within ``1e-6`` of the parameter's scale (its start or initial value) above it, the upper
+    within ``0.2 %`` of ``|hi|`` (or of the range) below it (the bounded solver stops just
+    inside a bound it pushes)."""
+    scale = max(abs(spec.initial), abs(spec.null), 1e-12)
+    lo, hi = spec.lower, spec.upper
+    if math.isfinite(lo) and v - lo <= max(1e-6 * scale, 1e-9 * abs(lo)):
+        return lo
+    if math.isfinite(hi):
+        width = hi - lo if math.isfinite(lo) else abs(hi)
+        if hi - v <= 2e-3 * max(abs(hi), width, 1e-12):
+            return hi
+    return None
 
 
 def _first_part(segments: Sequence[Segment]) -> list[Segment]:
@@ -470,16 +487,7 @@ class OEFit(StartPoints):
         for i, spec in enumerate(m.specs):
             if not m.free[i]:
                 continue
-            v = float(theta[i])
-            scale = max(abs(spec.initial), abs(spec.null), 1e-12)
-            lo, hi = spec.lower, spec.upper
-            at = None
-            if math.isfinite(lo) and v - lo <= max(1e-6 * scale, 1e-9 * abs(lo)):
-                at = lo
-            elif math.isfinite(hi):
-                width = hi - lo if math.isfinite(lo) else abs(hi)
-                if hi - v <= 2e-3 * max(abs(hi), width, 1e-12):
-                    at = hi
+            at = bound_hit(spec, float(theta[i]))
             if at is not None:
                 is_null = i >= m.n_struct and at == spec.null
                 out.append((spec.name, is_null))

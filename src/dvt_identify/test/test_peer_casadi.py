@@ -39,6 +39,7 @@ def _bag(root: Path, name: str, seed: int) -> Path:
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """Estimation and validation on a plant with Coulomb friction on both members."""
     root = tmp_path_factory.mktemp("peer")
     return _bag(root, "est", 1), _bag(root, "val", 2)
 
@@ -49,23 +50,62 @@ def compared(pair: tuple[Path, Path]) -> dict[str, Any]:
     return compare.compare_one(*pair, starts=1, peer=True)
 
 
+@pytest.fixture(scope="module")
+def compared_clean() -> dict[str, Any]:
+    """The committed pair of the README's peer row (``bags/ident-none-1`` ->
+    ``bags/ident-none-val``, 1 kHz, no hidden effect: the peer is told no friction)."""
+    pytest.importorskip("casadi")
+    bags = Path(__file__).resolve().parents[3] / "bags"
+    return compare.compare_one(bags / "ident-none-1", bags / "ident-none-val", peer=True)
+
+
+def _solved(peer: dict[str, Any]) -> None:
+    assert "not_run" not in peer, peer
+    assert peer["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level"), peer["status"]
+
+
 @pytest.mark.peer
 @pytest.mark.slow
-@pytest.mark.timeout(1200)  # an identification and one or two peer fits (IPOPT)
-def test_peer_fits_like_the_identifier_and_finds_M(compared: dict[str, Any]) -> None:
-    peer = compared["peer"]
-    assert "not_run" not in peer, peer
-    assert peer["told"] == ["coulomb_friction"]
-    assert peer["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level"), peer["status"]
-    ours = compared["validation_fit_percent_free_run"]
+@pytest.mark.timeout(1200)  # an identification and one peer fit (IPOPT, about 150 s)
+def test_peer_fits_like_the_identifier_and_finds_M(compared_clean: dict[str, Any]) -> None:
+    """Without dry friction in the plant, the peer's smoothed band signs are its only
+    approximation: both fit the same grey box to the same data and land together."""
+    peer = compared_clean["peer"]
+    _solved(peer)
+    assert peer["told"] == []
+    ours = compared_clean["validation_fit_percent_free_run"]
     theirs = peer["validation_fit_percent_free_run"]
     assert set(theirs) == set(ours)
     for name in ours:
         assert abs(theirs[name] - ours[name]) <= FIT_POINTS, (name, theirs, ours)
     assert peer["M_error_percent"] <= compare.TARGET_MD_ERROR_PERCENT, peer
+    assert set(compared_clean["meets_targets"]) == {"validation_fit_no_worse",
+                                                    "M_D_within_2_percent", "twice_as_fast"}
+
+
+@pytest.mark.peer
+@pytest.mark.slow
+@pytest.mark.timeout(1200)  # an identification and one peer fit (IPOPT)
+def test_on_coulomb_friction_the_identifier_is_no_worse_than_the_peer(
+        compared: dict[str, Any]) -> None:
+    """Told the plant's Coulomb frictions, the peer (dry signs smoothed to ``tanh(s / eps)``)
+    fits no better than the identifier (exact signs with a stick rule) on any output, within
+    the comparison's own margin; the parameters it leaves at a bound are named."""
+    peer = compared["peer"]
+    _solved(peer)
+    assert peer["told"] == ["coulomb_friction"]
     assert {"Fc_sun_shaft", "Fc_carrier3"} <= set(peer["parameters"])
-    assert set(compared["meets_targets"]) == {"validation_fit_no_worse", "M_D_within_2_percent",
-                                              "twice_as_fast"}
+    ours = compared["validation_fit_percent_free_run"]
+    theirs = peer["validation_fit_percent_free_run"]
+    assert set(theirs) == set(ours)
+    for name in ours:
+        assert ours[name] >= theirs[name] - compare.NO_WORSE_POINTS, (name, theirs, ours)
+    assert compared["meets_targets"]["validation_fit_no_worse"]
+    assert set(peer["at_bounds"]) <= set(peer["parameters"])
+    summary = compare.pretty_compare({"runs": [compared], "peer_method": "peer",
+                                      "load_average": {"before": [0.0], "after": [0.0]}})
+    for name in peer["at_bounds"]:
+        assert name in summary, summary
 
 
 @pytest.mark.peer

@@ -61,6 +61,7 @@ from dvt_identify.effects import Effect, ParamSpec
 from dvt_identify.effects.brakes import BrakeEngagement, BrakeLockup
 from dvt_identify.effects.friction import CoulombFriction
 from dvt_identify.errors import BenchError, DescriptionError
+from dvt_identify.fit import bound_hit
 from dvt_identify.structures import ParamMatrix
 from dvt_model.contract import DEFAULT_EPS
 from dvt_model.errors import BagError
@@ -259,6 +260,8 @@ class PeerFit:
         nodes: shooting nodes over all estimation segments.
         build_seconds: building the NLP (with ``compiled``: compiling it with the C compiler),
             part of ``seconds``.
+        at_bounds: parameters at a bound of the description (:func:`dvt_identify.fit.bound_hit`,
+            the identifier's rule), by name.
     """
 
     parameters: dict[str, float]
@@ -270,6 +273,7 @@ class PeerFit:
     nodes: int
     build_seconds: float
     compiled: bool
+    at_bounds: list[str]
 
 
 def fit_peer(est: Sequence[Segment], desc: Description, told: Sequence[str] = (),
@@ -399,7 +403,9 @@ def fit_peer(est: Sequence[Segment], desc: Description, told: Sequence[str] = ()
                   theta=th_fit, seconds=time.perf_counter() - t0,
                   cpu_seconds=time.process_time() - c0, status=str(stats["return_status"]),
                   iterations=int(stats.get("iter_count", -1)), nodes=nodes,
-                  build_seconds=build, compiled=jit)
+                  build_seconds=build, compiled=jit,
+                  at_bounds=[p.name for p, v in zip(parts.specs, th_fit, strict=True)
+                             if bound_hit(p, float(v)) is not None])
     return fit, (step, parts)
 
 
@@ -422,7 +428,7 @@ def run_peer(est_bag: Path, val_bag: Path, description: str | Description = "dvt
     Returns:
         ``{"method", "told", "validation_fit_percent_free_run", "parameters", "fit_seconds",
         "cpu_seconds", "status", "iterations", "nodes", "eps", "build_seconds",
-        "compiled"}`` (``cpu_seconds``: this process's, without the compiler's).
+        "compiled", "at_bounds"}`` (``cpu_seconds``: this process's, without the compiler's).
 
     Raises:
         BenchError: CasADi missing, no ``truth.yaml``, a model the peer cannot build.
@@ -445,4 +451,5 @@ def run_peer(est_bag: Path, val_bag: Path, description: str | Description = "dvt
             "parameters": fit.parameters, "fit_seconds": fit.seconds,
             "cpu_seconds": fit.cpu_seconds, "status": fit.status,
             "iterations": fit.iterations, "nodes": fit.nodes, "eps": EPS,
-            "build_seconds": fit.build_seconds, "compiled": fit.compiled}
+            "build_seconds": fit.build_seconds, "compiled": fit.compiled,
+            "at_bounds": fit.at_bounds}
