@@ -477,11 +477,8 @@ class OEFit(StartPoints):
 
     def bounds_hit(self, theta: Array) -> list[tuple[str, bool]]:
         """Free parameters of ``theta`` at a bound: (name, whether that bound is the
-        parameter's null value, i.e. an absent effect rather than a suspect optimum).
-
-        At the lower bound ``lo``: within ``1e-6`` of the parameter's scale (its start or
-        initial value) above it; at the upper bound ``hi``: within ``0.2 %`` of ``|hi|`` (or
-        of the range) below it (the bounded solver stops just inside a bound it pushes)."""
+        parameter's null value, i.e. an absent effect rather than a suspect optimum), by
+        :func:`bound_hit`."""
         m = self.model
         out = []
         for i, spec in enumerate(m.specs):

@@ -393,7 +393,7 @@ def check(desc: Description, segments: Sequence[Segment],
     # the probe point of the influence: each kept effect at its null gets a neutral non-zero
     # value (the Fisher rule stays at the prior, where the baseline fit starts)
     coarsest = max(segs, key=lambda s: s.dt)
-    view = SegmentView(coarsest.dt, coarsest.u, coarsest.y, coarsest.angles)
+    view = SegmentView.of(coarsest)
     theta = prior.copy()
     off = model.n_struct
     for eff in effects:

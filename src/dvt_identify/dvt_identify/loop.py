@@ -256,7 +256,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
     current = baseline
     remaining = []
     for cand in desc.make_candidates():
-        why_not = cand.unavailable([SegmentView(s.dt, s.u, s.y, s.angles) for s in fit_segs])
+        why_not = cand.unavailable([SegmentView.of(s) for s in fit_segs])
         if why_not is None:
             remaining.append(cand)
         else:
@@ -511,12 +511,12 @@ def _prior_starts(model: OEModel, effect: Effect, seg: Segment) -> list[Array]:
     (the structure's and the declared effects' initial values, not the current optimum), the
     effect at its initial values with each of its scanned variants (one start each)."""
     base = np.concatenate([model.initial(), [p.initial for p in effect.params]])
-    names = [*model.names, *(p.name for p in effect.params)]
+    off = len(model.names)
     out = []
-    for _label, values in effect.variants(SegmentView(seg.dt, seg.u, seg.y, seg.angles)):
+    for _label, values in effect.variants(SegmentView.of(seg)):
         start = base.copy()
         for name, value in values.items():
-            start[names.index(name)] = value
+            start[off + effect.pindex(name)] = value
         out.append(start)
     return out
 

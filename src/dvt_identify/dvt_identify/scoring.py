@@ -164,9 +164,9 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                                                                      strict=True)]
     absorbed = absorbed_threshold(fit, segments, span, base)
     coarsest = max(segments, key=lambda s: s.dt)  # shape variants the slowest rate can show
-    view = SegmentView(coarsest.dt, coarsest.u, coarsest.y, coarsest.angles)
+    view = SegmentView.of(coarsest)
     ctx = ScoringContext(
-        views=[SegmentView(s.dt, s.u, s.y, s.angles) for s in segments], simulated=base,
+        views=[SegmentView.of(s) for s in segments], simulated=base,
         weights=w,
         member_residual=lambda member: member_force_residual(fit, segments[0], member))
 

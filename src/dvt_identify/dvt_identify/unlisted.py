@@ -62,7 +62,7 @@ def _term_columns(fit: OEFit, segments: Sequence[Segment], lib: Unlisted,
     w = fit.weights_
     model, theta = candidate_theta(fit, lib, lib.null_vector())
     off = len(fit.theta_)
-    views = [SegmentView(s.dt, s.u, s.y, s.angles) for s in segments]
+    views = [SegmentView.of(s) for s in segments]
     phi = np.sqrt(np.mean(np.vstack([lib.regressors(v) for v in views]) ** 2, axis=0))
     per_force: float | None = None  # output change per unit of term force RMS
     cols = []
@@ -193,7 +193,7 @@ def search_unlisted(fit: OEFit, segments: Sequence[Segment], libraries: Sequence
     if not isinstance(prop, Unlisted):  # pragma: no cover - built by Unlisted.subset above
         return best
     first = segments[0]
-    _, source = angle_of(SegmentView(first.dt, first.u, first.y, first.angles),
+    _, source = angle_of(SegmentView.of(first),
                          prop.require_member())
     best.extra.update({
         "formula": prop.formula([s.initial for s in prop.params]), "member": prop.member_name,

@@ -86,6 +86,12 @@ class SegmentView:
     y: Array
     angles: Array | None = None
 
+    @classmethod
+    def of(cls, seg: Any) -> SegmentView:
+        """The view of a segment (:class:`dvt_identify.data.Segment`, or anything with its
+        ``dt``, ``u``, ``y`` and ``angles``)."""
+        return cls(seg.dt, seg.u, seg.y, seg.angles)
+
 
 def speed_scale(seg: SegmentView, member: Array) -> float:
     """The spread (std) of a member's speed ``c . x`` over a segment [speed unit]: from the
