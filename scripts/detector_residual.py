@@ -1,0 +1,263 @@
+"""Why the change detector misses its false-alarm design on the simulated plant's own residual
+(the figures of ``docs/loop.md``, "Limits", and of ``tests/test_detector_clean_plant.py``).
+
+Records the model node's path without ROS for each ``--seeds`` entry (a clean
+:class:`~dvt_driver.plant.core.PlantSim`, 1 kHz, the drive at 4 A in neutral ->
+:class:`~dvt_model.predictor.Predictor` with the plant's own parameters ->
+:class:`~dvt_model.predictor.ResidualBlocks` of the node's ``detector.block_s``), ``--seconds``
+each, two recordings at a time, and prints, per output over all recordings:
+
+* the residual's autocorrelation at a few lags (10-ms blocks) and ``B var(block means of B) /
+  var`` (the long-run variance ratio; 1 for white noise);
+* the reference windows' whitening out of sample: each ``learn_s`` window's
+  :func:`~dvt_model.detect.reference_from_window` whitens the *next* window; the standard
+  deviation of those windows' means of ``z`` against the ``1 / sqrt(L)`` the design assumes,
+  and ``B`` times the mean square of its means of ``B`` samples (1 if the whitening were
+  right; at ``B = L`` the window means' own);
+* the false alarms of :class:`~dvt_model.detect.ChangeDetector` with the node's defaults and
+  ``learn_s`` 20, 60 and 120 s, with the one-sided 95 % Poisson bounds, against the design;
+* a design tried and not kept (``--trial``): ``h`` for whitened increments of long-run
+  variance ``lam`` (``k`` and ``h`` act divided by ``sqrt(lam)``), ``lam`` from
+  :data:`TRIAL_BATCHES` batch means of the whitened reference window (at least 1) and the rate
+  averaged over its scale-inverse-chi2 uncertainty; its false alarms on the recordings and on
+  ``--white-hours`` of white residual at the block rate (where the node's design is right).
+
+About 2.5 minutes with the defaults on two cores, 4 more with ``--trial``.
+
+Usage::
+
+    .venv/bin/python scripts/detector_residual.py [--seeds 3100 3101 3102 3103] [--seconds 900]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+from scipy.signal import lfilter
+from scipy.stats import chi2
+
+LEAD_S = 2.0  # the model node starts this long after the motor [s]
+CURRENT_A = 4.0
+SETTLE_BLOCKS = 300  # blocks left out after the start (the node's settle_s)
+TRIAL_BATCHES = 25
+"""Batches of the whitened reference window in the ``--trial`` design."""
+
+
+def record(seed: int, seconds: float) -> np.ndarray:
+    """``(n, 3)`` block stamps [s] and block-mean residuals [rad/s] of one clean plant."""
+    from dvt_driver.link.protocol import Command, Hello, Mode
+    from dvt_driver.plant.core import PlantSim
+    from dvt_model.config import detector_config
+    from dvt_model.hybrid import HybridModel
+    from dvt_model.params import load_parameters
+    from dvt_model.predictor import Predictor, ResidualBlocks
+
+    params = load_parameters("physical")
+    setup = detector_config({})
+    if setup is None:
+        raise SystemExit("the node's detector is disabled by default: nothing to measure")
+    sim = PlantSim(params, None, seed=seed)
+    sim.handle(Hello())
+    pred = Predictor(HybridModel.from_params(params), params.brake)
+    blocks = ResidualBlocks(setup.block, 2, setup.config.max_gap_s)
+    out: list[list[float]] = []
+    i = 0
+    while True:
+        if i % 50 == 0:  # the set-point at 20 Hz (the controller's watchdog)
+            sim.handle(Command(i & 0xFFFF, Mode.CURRENT, CURRENT_A, (0.0, 0.0, 0.0)))
+        v = sim.tick()
+        i += 1
+        t = v.t_us * 1e-6
+        if t > seconds:
+            break
+        if t < LEAD_S:
+            continue
+        p = pred.update(t, v.motor_current, v.brake_currents, (v.sun_speed, v.carrier3_speed))
+        if p.anchored:
+            blocks.clear()
+        b = blocks.add(t, p.residual.tolist())
+        if b is not None:
+            out.append([b[0], *b[1]])
+    return np.asarray(out, dtype=float)[SETTLE_BLOCKS:]
+
+
+def lrv_ratio(x: np.ndarray, b: int) -> float:
+    """``b var(means of b consecutive samples) / var(x)`` (``nan`` for fewer than 4 means)."""
+    n = x.size // b
+    if n < 4:
+        return math.nan
+    m = x[: n * b].reshape(n, b).mean(axis=1)
+    return float(m.var() * b / x.var())
+
+
+def pooled_lrv(zs: list[np.ndarray], b: int) -> float:
+    """``b`` times the mean square of the means of ``b`` consecutive samples of each whitened
+    window in ``zs``, about 0 (the level the design assumes): 1 for a right whitening."""
+    m = np.concatenate([z[: z.size // b * b].reshape(-1, b).mean(axis=1) for z in zs])
+    return float(b * np.mean(m * m))
+
+
+def trial_h(k: float, rate: float, learn: int, lam: float, dof: int) -> float:
+    """The ``--trial`` threshold: the smallest ``h`` whose false-alarm rate per sample, averaged
+    over 16 equal-probability points of ``lam``'s scale-inverse-chi2 uncertainty, is at most
+    ``rate``."""
+    from dvt_model.detect import _rates
+
+    q = (np.arange(16) + 0.5) / 16
+    lams = lam * dof / chi2.ppf(1.0 - q, dof)
+
+    def rates(h: np.ndarray) -> np.ndarray:
+        return np.mean([_rates(k / math.sqrt(v), h / math.sqrt(v), learn) for v in lams], axis=0)
+
+    hi = 8.0
+    while rates(np.asarray([hi]))[0] > rate:
+        hi *= 4.0
+    lo = 0.0
+    for _ in range(3):
+        grid = np.linspace(lo, hi, 65)
+        j = int(np.argmax(rates(grid) <= rate))
+        lo, hi = float(grid[max(j - 1, 0)]), float(grid[j])
+    return hi
+
+
+def count_alarms(x: np.ndarray, trial: bool) -> tuple[int, int, list[float], list[float]]:
+    """False alarms of the detector's algorithm (vectorised, re-learning after each alarm) on
+    ``x`` ``(n, outputs)`` at the node's default settings, with its own threshold or the
+    ``--trial`` one: ``(alarms, tested samples, thresholds of the last output, the detector's
+    mean time between false alarms [h] each window's thresholds give on i.i.d. increments)``."""
+    from dvt_model.config import detector_config
+    from dvt_model.detect import false_alarm_rate, reference_from_window
+    from dvt_model.detect_sim import _whiten, cusum_run
+
+    setup = detector_config({})
+    assert setup is not None
+    cfg = setup.config
+    L = cfg.learn_samples
+    rate = 2.0 / (cfg.false_alarm_period_s * cfg.sample_rate_hz * 2 * x.shape[1])
+    i = alarms = tested = 0
+    hs: list[float] = []
+    iid_h: list[float] = []
+    while i + L < x.shape[0]:
+        win = x[i:i + L]
+        first = -1
+        per_sample = 0.0
+        for j in range(x.shape[1]):
+            ref = reference_from_window(win[:, j], cfg)
+            h = ref.h
+            if trial:
+                c = win[:, j] - ref.level
+                z = np.asarray(lfilter([1.0, -ref.phi], [1.0, ref.theta], c))[1:] / ref.sigma_e
+                b = z.size // TRIAL_BATCHES
+                m = z[: b * TRIAL_BATCHES].reshape(TRIAL_BATCHES, b).mean(axis=1)
+                lam = max(1.0, float(np.var(m, ddof=1)) * b)
+                h = trial_h(ref.k, rate, L, lam, TRIAL_BATCHES - 1)
+            per_sample += false_alarm_rate(ref.k, h, L)
+            if j == x.shape[1] - 1:
+                hs.append(h)
+            z, _ = _whiten(x[i + L:, j], (ref.last_r, ref.last_a), ref)
+            for sign in (1.0, -1.0):
+                idx, _ = cusum_run(sign * z, ref.k, h)
+                if idx >= 0 and (first < 0 or idx < first):
+                    first = idx
+        iid_h.append(1.0 / (per_sample * cfg.sample_rate_hz * 3600.0))
+        if first < 0:
+            tested += x.shape[0] - i - L
+            break
+        alarms += 1
+        tested += first + 1
+        i += L + first + 1
+    return alarms, tested, hs, iid_h
+
+
+def rate_line(alarms: int, hours: float) -> str:
+    """``alarms / hours`` with its one-sided 95 % Poisson bounds."""
+    lo = 0.0 if alarms == 0 else float(chi2.ppf(0.05, 2 * alarms)) / (2 * hours)
+    hi = float(chi2.ppf(0.95, 2 * alarms + 2)) / (2 * hours)
+    return (f"{alarms:3d} in {hours:.2f} h tested: {alarms / hours:6.2f}/h (one-sided 95 %: "
+            f"{lo:.2f} to {hi:.2f}/h)")
+
+
+def main() -> int:
+    from dvt_model.config import detector_config
+    from dvt_model.detect import ChangeDetector, reference_from_window
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[3100, 3101, 3102, 3103])
+    ap.add_argument("--seconds", type=float, default=900.0)
+    ap.add_argument("--trial", action="store_true",
+                    help="also count the alarms of the design tried and not kept")
+    ap.add_argument("--white-hours", type=float, default=10.0,
+                    help="hours of white residual for --trial (seed 1)")
+    a = ap.parse_args()
+    with ProcessPoolExecutor(2) as pool:
+        recs = list(pool.map(record, a.seeds, [a.seconds] * len(a.seeds)))
+    setup = detector_config({})
+    assert setup is not None
+    cfg = setup.config
+    L = cfg.learn_samples
+    print(f"{len(recs)} clean plants (seeds {a.seeds}), {a.seconds:g} s each, 10-ms blocks, "
+          f"{sum(r.shape[0] for r in recs) / cfg.sample_rate_hz / 3600:.2f} h in all")
+    for j, name in enumerate(cfg.names):
+        xs = [r[:, 1 + j] - r[:, 1 + j].mean() for r in recs]
+        acf = []
+        for lag in (1, 2, 5, 10, 20, 50, 100, 200):
+            acf.append(float(np.mean([np.sum(x[lag:] * x[:-lag]) / np.sum(x * x) for x in xs])))
+        ratios = [float(np.nanmean([lrv_ratio(x, b) for x in xs]))
+                  for b in (10, 100, 1000, 2000, 5000)]
+        print(f"\n{name}: residual autocorrelation at 1/2/5/10/20/50/100/200 blocks: "
+              + " ".join(f"{v:.3f}" for v in acf))
+        print(f"{name}: B var(means of B) / var at B = 10/100/1000/2000/5000 blocks: "
+              + " ".join(f"{v:.2f}" for v in ratios))
+        means, zs = [], []
+        for r in recs:
+            x = r[:, 1 + j]
+            for w in range(x.size // L - 1):
+                ref = reference_from_window(x[w * L:(w + 1) * L], cfg)
+                c = x[w * L:(w + 2) * L] - ref.level
+                z = np.asarray(lfilter([1.0, -ref.phi], [1.0, ref.theta], c))[L:] / ref.sigma_e
+                means.append(float(z.mean()))
+                zs.append(z)
+        wz = [pooled_lrv(zs, b) for b in (1, 100, 400, 2000)]
+        print(f"{name}: whitened out of sample ({len(means)} windows of {cfg.learn_s:g} s): sd of "
+              f"the window means {np.std(means):.4f} against 1/sqrt(L) = {L ** -0.5:.4f}; "
+              "B mean(means of B ^ 2) at B = 1/100/400/2000: " + " ".join(f"{v:.2f}" for v in wz))
+    design = 3600.0 / cfg.false_alarm_period_s
+    print(f"\nfalse alarms of ChangeDetector (node defaults; design {design:.2f}/h):")
+    for learn_s in (cfg.learn_s, 60.0, 120.0):
+        c = dataclasses.replace(cfg, learn_s=learn_s)
+        alarms = tested = 0
+        for r in recs:
+            det = ChangeDetector(c)
+            for row in r.tolist():
+                if det.update(row[0], row[1:]) is not None:
+                    alarms += 1
+            tested += det.counters.tested
+        print(f"  learn_s {learn_s:5g}: " + rate_line(alarms, tested / c.sample_rate_hz / 3600))
+    if a.trial:
+        rate_hz = cfg.sample_rate_hz
+        white = np.random.default_rng(1).standard_normal(
+            (round(a.white_hours * 3600 * rate_hz), len(cfg.names)))
+        print(f"\ntrial design (long-run variance from {TRIAL_BATCHES} batch means, averaged "
+              "over its uncertainty) against the node's, vectorised:")
+        for label, data in (("clean plants", recs), ("white residual", [white])):
+            for trial in (False, True):
+                al = te = 0
+                hs: list[float] = []
+                iid: list[float] = []
+                for x in data:
+                    n_al, n_te, h, m = count_alarms(x[:, 1:] if x is not white else x, trial)
+                    al, te, hs, iid = al + n_al, te + n_te, hs + h, iid + m
+                print(f"  {label:14s} {'trial' if trial else 'node '}: "
+                      + rate_line(al, te / rate_hz / 3600)
+                      + f"; h of {cfg.names[-1]} median {np.median(hs):.1f}; on i.i.d. "
+                      f"increments its thresholds give one false alarm per "
+                      f"{np.median(iid):.3g} h (median over windows)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
