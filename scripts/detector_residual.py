@@ -228,15 +228,15 @@ def main() -> int:
     design = 3600.0 / cfg.false_alarm_period_s
     print(f"\nfalse alarms of ChangeDetector (node defaults; design {design:.2f}/h):")
     for learn_s in (cfg.learn_s, 60.0, 120.0):
-        c = dataclasses.replace(cfg, learn_s=learn_s)
+        longer = dataclasses.replace(cfg, learn_s=learn_s)
         alarms = tested = 0
         for r in recs:
-            det = ChangeDetector(c)
+            det = ChangeDetector(longer)
             for row in r.tolist():
                 if det.update(row[0], row[1:]) is not None:
                     alarms += 1
             tested += det.counters.tested
-        print(f"  learn_s {learn_s:5g}: " + rate_line(alarms, tested / c.sample_rate_hz / 3600))
+        print(f"  learn_s {learn_s:5g}: " + rate_line(alarms, tested / longer.sample_rate_hz / 3600))
     if a.trial:
         rate_hz = cfg.sample_rate_hz
         white = np.random.default_rng(1).standard_normal(
