@@ -175,6 +175,8 @@ def count_alarms(x: np.ndarray, trial: bool) -> tuple[int, int, list[float], lis
 
 def rate_line(alarms: int, hours: float) -> str:
     """``alarms / hours`` with its one-sided 95 % Poisson bounds."""
+    if hours <= 0:
+        return "nothing tested (the recordings are shorter than the reference window)"
     lo = 0.0 if alarms == 0 else float(chi2.ppf(0.05, 2 * alarms)) / (2 * hours)
     hi = float(chi2.ppf(0.95, 2 * alarms + 2)) / (2 * hours)
     return (f"{alarms:3d} in {hours:.2f} h tested: {alarms / hours:6.2f}/h (one-sided 95 %: "
@@ -236,7 +238,8 @@ def main() -> int:
                 if det.update(row[0], row[1:]) is not None:
                     alarms += 1
             tested += det.counters.tested
-        print(f"  learn_s {learn_s:5g}: " + rate_line(alarms, tested / longer.sample_rate_hz / 3600))
+        hours = tested / longer.sample_rate_hz / 3600
+        print(f"  learn_s {learn_s:5g}: " + rate_line(alarms, hours))
     if a.trial:
         rate_hz = cfg.sample_rate_hz
         white = np.random.default_rng(1).standard_normal(
