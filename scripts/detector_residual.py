@@ -20,7 +20,10 @@ each, two recordings at a time, and prints, per output over all recordings:
   variance ``lam`` (``k`` and ``h`` act divided by ``sqrt(lam)``), ``lam`` from
   :data:`TRIAL_BATCHES` batch means of the whitened reference window (at least 1) and the rate
   averaged over its scale-inverse-chi2 uncertainty; its false alarms on the recordings and on
-  ``--white-hours`` of white residual at the block rate (where the node's design is right).
+  ``--white-hours`` of white residual at the block rate (where the node's design is right);
+  and a whitening that sees the slow time scales: an AR(p) (Yule-Walker, ``p`` of
+  :data:`AR_ORDERS` by AIC) learned on ``--colour-s`` of residual whitens the next 20 s, windows
+  every 60 s (the same mean-square figures as above).
 
 About 2.5 minutes with the defaults on two cores, 4 more with ``--trial``.
 
@@ -45,6 +48,8 @@ CURRENT_A = 4.0
 SETTLE_BLOCKS = 300  # blocks left out after the start (the node's settle_s)
 TRIAL_BATCHES = 25
 """Batches of the whitened reference window in the ``--trial`` design."""
+AR_ORDERS = (1, 2, 5, 10, 20, 40, 80, 160, 300)
+"""AR orders the long-window whitening of ``--trial`` chooses among by AIC."""
 
 
 def record(seed: int, seconds: float) -> np.ndarray:
@@ -173,6 +178,44 @@ def count_alarms(x: np.ndarray, trial: bool) -> tuple[int, int, list[float], lis
     return alarms, tested, hs, iid_h
 
 
+def long_ar(x: np.ndarray) -> tuple[float, np.ndarray]:
+    """Level and AR polynomial ``[1, -a_1, ..., -a_p]`` of ``x`` (1-D): Yule-Walker on the
+    centred series, ``p`` of :data:`AR_ORDERS` by AIC."""
+    from scipy.linalg import solve_toeplitz
+
+    level = float(x.mean())
+    c = x - level
+    n = c.size
+    f = np.fft.rfft(c, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[: max(AR_ORDERS) + 1] / n
+    best: tuple[float, np.ndarray] | None = None
+    for order in AR_ORDERS:
+        coef = solve_toeplitz(acf[:order], acf[1:order + 1])
+        var = float(acf[0] - coef @ acf[1:order + 1])
+        aic = n * math.log(var) + 2 * order
+        if best is None or aic < best[0]:
+            best = (aic, np.concatenate([[1.0], -coef]))
+    assert best is not None
+    return level, best[1]
+
+
+def long_window_whitening(recs: list[np.ndarray], j: int, colour: int, test: int
+                          ) -> tuple[list[np.ndarray], list[int]]:
+    """Output ``j`` of each recording whitened ``test`` samples past each ``colour``-sample
+    window (windows every 6000 samples) by that window's :func:`long_ar`, unit scale from the
+    window's own innovations; and the AR orders chosen."""
+    zs, orders = [], []
+    for r in recs:
+        x = r[:, 1 + j]
+        for s0 in range(0, x.size - colour - test + 1, 6000):
+            level, poly = long_ar(x[s0:s0 + colour])
+            a = np.asarray(lfilter(poly, [1.0], x[s0:s0 + colour + test] - level))
+            p = poly.size - 1
+            zs.append(a[colour:] / float(np.std(a[p:colour])))
+            orders.append(p)
+    return zs, orders
+
+
 def rate_line(alarms: int, hours: float) -> str:
     """``alarms / hours`` with its one-sided 95 % Poisson bounds."""
     if hours <= 0:
@@ -194,6 +237,8 @@ def main() -> int:
                     help="also count the alarms of the design tried and not kept")
     ap.add_argument("--white-hours", type=float, default=10.0,
                     help="hours of white residual for --trial (seed 1)")
+    ap.add_argument("--colour-s", type=float, nargs="+", default=[20.0, 120.0, 300.0],
+                    help="--trial: lengths of the long-window AR whitening's window [s]")
     a = ap.parse_args()
     with ProcessPoolExecutor(2) as pool:
         recs = list(pool.map(record, a.seeds, [a.seconds] * len(a.seeds)))
@@ -259,6 +304,17 @@ def main() -> int:
                       + f"; h of {cfg.names[-1]} median {np.median(hs):.1f}; on i.i.d. "
                       f"increments its thresholds give one false alarm per "
                       f"{np.median(iid):.3g} h (median over windows)")
+        print("\ntrial whitening: AR(p) by AIC on a long window, scored on the next 20 s:")
+        test = round(20.0 * rate_hz)
+        for secs in a.colour_s:
+            for j, name in enumerate(cfg.names):
+                zs, orders = long_window_whitening(recs, j, round(secs * rate_hz), test)
+                if not zs:
+                    print(f"  {secs:5g} s {name}: the recordings are too short")
+                    continue
+                print(f"  {secs:5g} s {name:9s}: {len(zs)} windows, p median "
+                      f"{int(np.median(orders))}; B mean(means of B ^ 2) at B = 1/100/400/2000: "
+                      + " ".join(f"{pooled_lrv(zs, b):.2f}" for b in (1, 100, 400, 2000)))
     return 0
 
 
