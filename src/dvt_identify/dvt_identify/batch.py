@@ -44,6 +44,7 @@ from dvt_identify.bench_identify.common import BLAS_ENV
 from dvt_identify.description import DEFAULT_DESCRIPTION, available_descriptions, load_description
 from dvt_identify.errors import BatchError, DescriptionError
 from dvt_identify.parallel import ENV as FORK_WORKERS
+from dvt_model.presets import safe_load
 
 TOOL = "dvt-identify-batch"
 SELECT_ON = ("validation", "holdout", "cv")
@@ -120,7 +121,7 @@ def load_manifest(path: str | Path) -> list[Job]:
     except OSError as exc:
         raise BatchError(f"{p}: cannot read the manifest: {exc.strerror or exc}") from exc
     try:
-        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
+        data = json.loads(text) if p.suffix.lower() == ".json" else safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
         kind = "JSON" if p.suffix.lower() == ".json" else "YAML"
         raise BatchError(f"{p}: not valid {kind}: {' '.join(str(exc).split())}") from exc

@@ -94,6 +94,7 @@ from dvt_identify.structures import (
     SpringMechanicalStructure,
     StateSpaceStructure,
 )
+from dvt_model.presets import safe_load
 
 DEFAULT_DESCRIPTION = "dvt"
 
@@ -590,7 +591,7 @@ def load_description(spec: str | Path | None = None) -> Description:
         text = res.read_text()
         source = f"{name} (bundled)"
     try:
-        data = yaml.safe_load(text)
+        data = safe_load(text)
     except yaml.YAMLError as exc:
         raise DescriptionError(f"{source}: not valid YAML: {exc}") from exc
     return parse_description(data, source, text)

@@ -48,6 +48,7 @@ from scipy import signal
 
 from dvt_identify.data import write_jointstate_bag
 from dvt_identify.errors import DvtIdentifyError, ImportDataError
+from dvt_model.presets import safe_load
 from dvt_model.recording import FIELDS, TopicSeries
 
 Array = NDArray[np.float64]
@@ -384,7 +385,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not mp.is_file():
                 raise ImportDataError(f"{mp}: mapping file not found")
             try:
-                data = yaml.safe_load(mp.read_text()) or {}
+                data = safe_load(mp.read_text()) or {}
             except yaml.YAMLError as exc:
                 raise ImportDataError(f"{mp}: not valid YAML: {exc}") from exc
             if not isinstance(data, dict):

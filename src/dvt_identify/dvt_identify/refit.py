@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike
 
 from dvt_identify.description import Description
 from dvt_identify.supervisor import STAGE_EFFECTS, FitOutcome, RequestFit
+from dvt_model.presets import safe_load
 
 MIN_WINDOW_SAMPLES = 100
 """Fewest samples of the estimation or the validation part of a snapshot."""
@@ -153,7 +154,7 @@ def held_description(desc: Description, values: Mapping[str, float], path: str |
 
     from dvt_identify.structures import ParamMatrix
 
-    data = yaml.safe_load(desc.text)
+    data = safe_load(desc.text)
     structure = data.get("structure") if isinstance(data, dict) else None
     if not isinstance(structure, dict):
         return None

@@ -103,6 +103,7 @@ from dvt_driver.plant.hidden import (
 from dvt_model.errors import DvtModelError
 from dvt_model.load import available_loads, load_joint_load
 from dvt_model.params import load_parameters
+from dvt_model.presets import safe_load
 
 __all__ = ["FaultInjector", "PlantServer", "PtyPort", "build_parser", "main"]
 
@@ -282,7 +283,7 @@ class PlantServer:
             return
         where = str(self.change_file)
         try:
-            data = yaml.safe_load(self.change_file.read_text(encoding="utf-8"))
+            data = safe_load(self.change_file.read_text(encoding="utf-8"))
             if isinstance(data, dict) and "at" in data:
                 raise DvtDriverError(f"{where}.at: not allowed (a --change-file change applies "
                                      f"at once), got {data['at']!r}")

@@ -61,6 +61,7 @@ from dvt_model.contract import (
     SAMPLE_TOPICS,
     SRV_DRIVER_STOP,
 )
+from dvt_model.presets import safe_load
 
 KEEPALIVE_HZ = 50.0
 """Re-publish rate of the held motor command [Hz] (>= 20 Hz; driver watchdog 0.5 s)."""
@@ -119,7 +120,7 @@ def parse_settings(items: Sequence[str]) -> dict[str, Any]:
         if not sep or not name.strip().isidentifier():
             raise ExperimentError(f"--set {item!r}: expected NAME=VALUE")
         try:
-            value = yaml.safe_load(text)
+            value = safe_load(text)
         except yaml.YAMLError as exc:
             raise ExperimentError(f"--set {item!r}: value is not valid YAML: {exc}") from exc
         out[name.strip()] = tuple(value) if isinstance(value, list) else value

@@ -65,6 +65,7 @@ from dvt_identify.fit import bound_hit
 from dvt_identify.structures import ParamMatrix
 from dvt_model.contract import DEFAULT_EPS
 from dvt_model.errors import BagError
+from dvt_model.presets import safe_load
 from dvt_model.recording import read_truth
 
 PEER_METHOD = ("multiple shooting (CasADi + IPOPT, 10 ms nodes, ROS2 steps at the sample "
@@ -139,7 +140,7 @@ def _parts(desc: Description, told: Sequence[str]) -> _Parts:
         BenchError: a structure or effect the peer cannot model.
     """
     try:
-        data = yaml.safe_load(desc.text) or {}
+        data = safe_load(desc.text) or {}
         st = data["structure"]
     except (yaml.YAMLError, KeyError, TypeError) as exc:
         raise BenchError(f"{desc.source}: peer: no structure section ({exc})") from exc

@@ -31,6 +31,7 @@ from dvt_identify.bench_identify.common import (
 from dvt_identify.description import load_description
 from dvt_identify.errors import BenchError
 from dvt_identify.simloop import warm_up
+from dvt_model.presets import safe_load
 
 TARGET_BASELINE_SECONDS = 0.5
 """Target of ``baseline_seconds`` on the 38-s recording at 1 kHz (issue: fast again) [s]."""
@@ -44,7 +45,7 @@ def description_with(desc_name: str, work: Path, max_tries: int | None) -> str:
     if max_tries is None:
         return desc_name
     desc = load_description(desc_name)
-    data = yaml.safe_load(desc.text)
+    data = safe_load(desc.text)
     data.setdefault("fit", {})["max_tries_per_round"] = int(max_tries)
     path = work / f"{desc.name}-max-tries-{max_tries}.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))

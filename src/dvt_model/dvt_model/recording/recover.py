@@ -22,6 +22,7 @@ from mcap.records import Channel, Schema
 from rosbags.rosbag2 import Reader, ReaderError
 
 from dvt_model.errors import RecordingError
+from dvt_model.presets import safe_load
 from dvt_model.progress import ProgressLine
 from dvt_model.recording.layout import MCAP_MAGIC, METADATA_FILE
 from dvt_model.recording.mcapindex import McapScan
@@ -112,7 +113,7 @@ def _add_channel(out: BagRecorder, ch: Channel, schemas: Mapping[int, Schema],
     if schema is None or ch.message_encoding != "cdr":
         return
     try:
-        qos = yaml.safe_load(ch.metadata.get("offered_qos_profiles", "") or "[]")
+        qos = safe_load(ch.metadata.get("offered_qos_profiles", "") or "[]")
     except yaml.YAMLError:
         qos = []
     if not isinstance(qos, list) or not all(isinstance(q, dict) for q in qos):

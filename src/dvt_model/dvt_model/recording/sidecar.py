@@ -19,6 +19,7 @@ from typing import Any
 import yaml
 
 from dvt_model.errors import BagError
+from dvt_model.presets import safe_load
 from dvt_model.recording.layout import METADATA_FILE, RUN_FILE, TRUTH_FILE
 
 __all__ = [
@@ -37,7 +38,7 @@ def _mapping(text: str, source: str | Path) -> dict[str, Any]:
     """The top-level mapping of YAML ``text`` (empty text: ``{}``); ``source`` names it in
     errors."""
     try:
-        data = yaml.safe_load(text)
+        data = safe_load(text)
     except yaml.YAMLError as exc:
         raise BagError(f"{source}: invalid YAML: {exc}") from exc
     if data is None:
