@@ -54,34 +54,20 @@ AR_ORDERS = (1, 2, 5, 10, 20, 40, 80, 160, 300)
 
 def record(seed: int, seconds: float) -> np.ndarray:
     """``(n, 3)`` block stamps [s] and block-mean residuals [rad/s] of one clean plant."""
-    from dvt_driver.link.protocol import Command, Hello, Mode
     from dvt_driver.plant.core import PlantSim
+    from dvt_driver.plant.offline import predicted_held_current
     from dvt_model.config import detector_config
-    from dvt_model.hybrid import HybridModel
     from dvt_model.params import load_parameters
-    from dvt_model.predictor import Predictor, ResidualBlocks
+    from dvt_model.predictor import ResidualBlocks
 
     params = load_parameters("physical")
     setup = detector_config({})
     if setup is None:
         raise SystemExit("the node's detector is disabled by default: nothing to measure")
-    sim = PlantSim(params, None, seed=seed)
-    sim.handle(Hello())
-    pred = Predictor(HybridModel.from_params(params), params.brake)
     blocks = ResidualBlocks(setup.block, 2, setup.config.max_gap_s)
     out: list[list[float]] = []
-    i = 0
-    while True:
-        if i % 50 == 0:  # the set-point at 20 Hz (the controller's watchdog)
-            sim.handle(Command(i & 0xFFFF, Mode.CURRENT, CURRENT_A, (0.0, 0.0, 0.0)))
-        v = sim.tick()
-        i += 1
-        t = v.t_us * 1e-6
-        if t > seconds:
-            break
-        if t < LEAD_S:
-            continue
-        p = pred.update(t, v.motor_current, v.brake_currents, (v.sun_speed, v.carrier3_speed))
+    plant = PlantSim(params, None, seed=seed)
+    for t, p in predicted_held_current(plant, params, CURRENT_A, seconds, LEAD_S):
         if p.anchored:
             blocks.clear()
         b = blocks.add(t, p.residual.tolist())

@@ -45,15 +45,14 @@ import numpy as np
 import pytest
 from scipy.stats import beta, chi2
 
-from dvt_driver.link.protocol import Command, Hello, Mode
 from dvt_driver.plant.core import PlantSim
 from dvt_driver.plant.hidden import parse_hidden
+from dvt_driver.plant.offline import predicted_held_current
 from dvt_model.config import detector_config
 from dvt_model.contract import DETECTOR_PREFIX
 from dvt_model.detect import ChangeDetector
-from dvt_model.hybrid import HybridModel
 from dvt_model.params import load_parameters
-from dvt_model.predictor import Predictor, ResidualBlocks
+from dvt_model.predictor import ResidualBlocks
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
@@ -86,26 +85,13 @@ def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: flo
     step_at = None if step_after_s is None else tested_from + step_after_s
     hidden = None if step_at is None else parse_hidden(
         {"changes": [{"at": step_at, "coulomb": STEP}]}, source="test")
-    sim = PlantSim(params, hidden, seed=seed)
-    sim.handle(Hello())
-    pred = Predictor(HybridModel.from_params(params), params.brake)
     blocks = ResidualBlocks(setup.block, 2, cfg.max_gap_s)
     det = ChangeDetector(cfg)
     end = (tested_from if step_at is None else step_at) + test_s
     settle_until = float("inf")
     alarms: list[dict[str, Any]] = []
-    i = 0
-    while True:
-        if i % 50 == 0:  # the set-point at 20 Hz (keep-alive within the controller's watchdog)
-            sim.handle(Command(i & 0xFFFF, Mode.CURRENT, CURRENT_A, (0.0, 0.0, 0.0)))
-        v = sim.tick()
-        i += 1
-        t = v.t_us * 1e-6
-        if t > end:
-            break
-        if t < LEAD_S:
-            continue
-        p = pred.update(t, v.motor_current, v.brake_currents, (v.sun_speed, v.carrier3_speed))
+    sim = PlantSim(params, hidden, seed=seed)
+    for t, p in predicted_held_current(sim, params, CURRENT_A, end, LEAD_S):
         if p.anchored:
             det.reset()
             blocks.clear()

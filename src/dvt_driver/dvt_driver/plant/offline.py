@@ -12,6 +12,7 @@ commands take effect at the sample at or after their time, as on the link.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from dvt_driver.link.protocol import Ack, Command, Hello, HelloAck, Mode, unwrap
 from dvt_driver.link.safety import Limits, MotorMode, ShiftSettings, Supervisor
 from dvt_driver.plant.core import PlantSim
 from dvt_driver.plant.hidden import HiddenEffects
-from dvt_driver.plant.settings import SensorConfig
+from dvt_driver.plant.settings import SampleValues, SensorConfig
 from dvt_driver.run.experiment_core import (
     BrakeCurrents,
     Experiment,
@@ -30,8 +31,10 @@ from dvt_driver.run.experiment_core import (
     MotorCurrent,
     SunSpeed,
 )
+from dvt_model.hybrid import HybridModel
 from dvt_model.load import JointLoad
 from dvt_model.params import TransmissionParams
+from dvt_model.predictor import Prediction, Predictor
 from dvt_model.recording import parse_truth, write_run
 
 Array = NDArray[np.float64]
@@ -146,3 +149,42 @@ def record_offline(path: str | Path, experiment: Experiment, params: Transmissio
     truth["made_by"] = f"dvt_driver.plant.offline.record_offline (experiment {experiment.name})"
     return write_run(path, stamps, run.speeds, run.currents, truth=truth,
                      positions=run.positions)
+
+
+KEEP_ALIVE_SAMPLES = 50
+"""Samples between two set-points of :func:`held_current` (20 Hz at 1 kHz: within the
+controller's watchdog)."""
+
+
+def held_current(plant: PlantSim, current_a: float, until_s: float) -> Iterator[SampleValues]:
+    """The samples of ``plant`` (a session open) with the
+    motor at ``current_a`` [A] in current mode and every band released, the set-point sent
+    again every :data:`KEEP_ALIVE_SAMPLES` samples, until the controller clock passes
+    ``until_s`` [s] (that sample not yielded). The clean-plant scenario of the change
+    detector's offline tests and of ``scripts/detector_residual.py``."""
+    i = 0
+    while True:
+        if i % KEEP_ALIVE_SAMPLES == 0:
+            plant.handle(Command(i & 0xFFFF, Mode.CURRENT, float(current_a), (0.0, 0.0, 0.0)))
+        v = plant.tick()
+        i += 1
+        if v.t_us * 1e-6 > until_s:
+            return
+        yield v
+
+
+def predicted_held_current(plant: PlantSim, params: TransmissionParams, current_a: float,
+                           until_s: float, lead_s: float) -> Iterator[tuple[float, Prediction]]:
+    """The model node's path without ROS on a plant held at a constant current: ``plant`` (a
+    session opened if none is) driven by :func:`held_current`, and from ``lead_s`` [s] on (the
+    node started after the motor) a :class:`~dvt_model.predictor.Predictor` with ``params``
+    (the plant's own for a clean plant) fed each sample: ``(plant time [s], prediction)`` until
+    ``until_s`` [s]."""
+    if not plant.session_open:
+        plant.handle(Hello())
+    pred = Predictor(HybridModel.from_params(params), params.brake)
+    for v in held_current(plant, current_a, until_s):
+        t = v.t_us * 1e-6
+        if t >= lead_s:
+            yield t, pred.update(t, v.motor_current, v.brake_currents,
+                                 (v.sun_speed, v.carrier3_speed))
