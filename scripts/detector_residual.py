@@ -1,5 +1,7 @@
-"""Why the change detector misses its false-alarm design on the simulated plant's own residual
-(the figures of ``docs/loop.md``, "Limits", and of ``tests/test_detector_clean_plant.py``).
+"""The change detector on the simulated plant's own residual: why the ARMA(1, 1) of each
+reference window misses its false-alarm design there, and what the long-window whitening
+(``detector.colour_s``) does (the figures of ``docs/loop.md``, "Colour" and "Limits", and of
+``tests/test_detector_clean_plant.py``).
 
 Records the model node's path without ROS for each ``--seeds`` entry (a clean
 :class:`~dvt_driver.plant.core.PlantSim`, 1 kHz, the drive at 4 A in neutral ->
@@ -14,16 +16,19 @@ each, two recordings at a time, and prints, per output over all recordings:
   deviation of those windows' means of ``z`` against the ``1 / sqrt(L)`` the design assumes,
   and ``B`` times the mean square of its means of ``B`` samples (1 if the whitening were
   right; at ``B = L`` the window means' own);
-* the false alarms of :class:`~dvt_model.detect.ChangeDetector` with the node's defaults and
-  ``learn_s`` 20, 60 and 120 s, with the one-sided 95 % Poisson bounds, against the design;
+* the false alarms of :class:`~dvt_model.detect.ChangeDetector` with the node's defaults but
+  no colour (``colour_s`` 0: each window's ARMA(1, 1)) and ``learn_s`` 20, 60 and 120 s, and
+  with the node's defaults (before the colour and with it), with the one-sided 95 % Poisson
+  bounds, against the design;
 * a design tried and not kept (``--trial``): ``h`` for whitened increments of long-run
   variance ``lam`` (``k`` and ``h`` act divided by ``sqrt(lam)``), ``lam`` from
   :data:`TRIAL_BATCHES` batch means of the whitened reference window (at least 1) and the rate
   averaged over its scale-inverse-chi2 uncertainty; its false alarms on the recordings and on
   ``--white-hours`` of white residual at the block rate (where the node's design is right);
-  and a whitening that sees the slow time scales: an AR(p) (Yule-Walker, ``p`` of
-  :data:`AR_ORDERS` by AIC) learned on ``--colour-s`` of residual whitens the next 20 s, windows
-  every 60 s (the same mean-square figures as above).
+  and a whitening that sees the slow time scales: an AR(p) (the detector's
+  :func:`~dvt_model.detect.ar_by_aic`, up to ``detector.colour_lag_s``) learned on
+  ``--colour-s`` of residual whitens the next 20 s, windows every 60 s (the same mean-square
+  figures as above).
 
 About 2.5 minutes with the defaults on two cores, 4 more with ``--trial``.
 
@@ -48,8 +53,6 @@ CURRENT_A = 4.0
 SETTLE_BLOCKS = 300  # blocks left out after the start (the node's settle_s)
 TRIAL_BATCHES = 25
 """Batches of the whitened reference window in the ``--trial`` design."""
-AR_ORDERS = (1, 2, 5, 10, 20, 40, 80, 160, 300)
-"""AR orders the long-window whitening of ``--trial`` chooses among by AIC."""
 
 
 def record(seed: int, seconds: float) -> np.ndarray:
@@ -164,37 +167,26 @@ def count_alarms(x: np.ndarray, trial: bool) -> tuple[int, int, list[float], lis
     return alarms, tested, hs, iid_h
 
 
-def long_ar(x: np.ndarray) -> tuple[float, np.ndarray]:
-    """Level and AR polynomial ``[1, -a_1, ..., -a_p]`` of ``x`` (1-D): Yule-Walker on the
-    centred series, ``p`` of :data:`AR_ORDERS` by AIC."""
-    from scipy.linalg import solve_toeplitz
-
-    level = float(x.mean())
-    c = x - level
-    n = c.size
-    f = np.fft.rfft(c, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f))[: max(AR_ORDERS) + 1] / n
-    best: tuple[float, np.ndarray] | None = None
-    for order in AR_ORDERS:
-        coef = solve_toeplitz(acf[:order], acf[1:order + 1])
-        var = float(acf[0] - coef @ acf[1:order + 1])
-        aic = n * math.log(var) + 2 * order
-        if best is None or aic < best[0]:
-            best = (aic, np.concatenate([[1.0], -coef]))
-    assert best is not None
-    return level, best[1]
-
-
 def long_window_whitening(recs: list[np.ndarray], j: int, colour: int, test: int
                           ) -> tuple[list[np.ndarray], list[int]]:
     """Output ``j`` of each recording whitened ``test`` samples past each ``colour``-sample
-    window (windows every 6000 samples) by that window's :func:`long_ar`, unit scale from the
+    window (windows every 6000 samples) by that window's AR of
+    :func:`~dvt_model.detect.ar_by_aic` (the node's ``colour_lag_s``), unit scale from the
     window's own innovations; and the AR orders chosen."""
+    from dvt_model.config import detector_config
+    from dvt_model.detect import ar_by_aic, lagged_products
+
+    setup = detector_config({})
+    assert setup is not None
+    lags = setup.config.colour_order_max
     zs, orders = [], []
     for r in recs:
         x = r[:, 1 + j]
         for s0 in range(0, x.size - colour - test + 1, 6000):
-            level, poly = long_ar(x[s0:s0 + colour])
+            win = x[s0:s0 + colour]
+            level = float(win.mean())
+            coef = ar_by_aic(lagged_products(win, lags) / win.size, win.size, lags)
+            poly = np.concatenate([[1.0], -coef])
             a = np.asarray(lfilter(poly, [1.0], x[s0:s0 + colour + test] - level))
             p = poly.size - 1
             zs.append(a[colour:] / float(np.std(a[p:colour])))
@@ -260,17 +252,24 @@ def main() -> int:
               "B mean(means of B ^ 2) at B = 1/100/400/2000: " + " ".join(f"{v:.2f}" for v in wz))
     design = 3600.0 / cfg.false_alarm_period_s
     print(f"\nfalse alarms of ChangeDetector (node defaults; design {design:.2f}/h):")
-    for learn_s in (cfg.learn_s, 60.0, 120.0):
-        longer = dataclasses.replace(cfg, learn_s=learn_s)
-        alarms = tested = 0
+    for learn_s in (cfg.learn_s, 60.0, 120.0, None):
+        if learn_s is None:
+            setting, label = cfg, f"colour_s {cfg.colour_s:g}"
+        else:
+            setting = dataclasses.replace(cfg, learn_s=learn_s, colour_s=0.0)
+            label = f"colour_s 0, learn_s {learn_s:g}"
+        alarms, tested = [0, 0], [0, 0]  # before the colour, with it
         for r in recs:
-            det = ChangeDetector(longer)
+            det = ChangeDetector(setting)
             for row in r.tolist():
-                if det.update(row[0], row[1:]) is not None:
-                    alarms += 1
-            tested += det.counters.tested
-        hours = tested / longer.sample_rate_hz / 3600
-        print(f"  learn_s {learn_s:5g}: " + rate_line(alarms, hours))
+                phase, before = int(det.colour_in_use), det.counters.tested
+                alarms[phase] += det.update(row[0], row[1:]) is not None
+                tested[phase] += det.counters.tested - before
+        for phase in (0, 1) if learn_s is None else (0,):
+            hours = tested[phase] / setting.sample_rate_hz / 3600
+            what = ("" if learn_s is not None else
+                    ", with the colour" if phase else ", before the colour")
+            print(f"  {label}{what}: " + rate_line(alarms[phase], hours))
     if a.trial:
         rate_hz = cfg.sample_rate_hz
         white = np.random.default_rng(1).standard_normal(

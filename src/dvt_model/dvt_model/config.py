@@ -235,7 +235,8 @@ def _detector(v: Mapping[str, Any]) -> DetectorSetup | None:
         sample_rate_hz=rate / block, learn_s=float(v[p + "learn_s"]),
         shift_sigma=float(v[p + "shift_sigma"]),
         false_alarm_period_s=float(v[p + "false_alarm_period_s"]),
-        max_gap_s=float(v[p + "max_gap_s"]), max_phi=float(v[p + "max_phi"])).validated()
+        max_gap_s=float(v[p + "max_gap_s"]), max_phi=float(v[p + "max_phi"]),
+        colour_s=float(v[p + "colour_s"]), colour_lag_s=float(v[p + "colour_lag_s"])).validated()
     if cfg.max_gap_s <= 1.0 / cfg.sample_rate_hz:
         raise ParameterError(f"{p}max_gap_s: expected more than one detector sample period "
                              f"({block / rate:g} s with {p}block_s = {v[p + 'block_s']:g} s), "

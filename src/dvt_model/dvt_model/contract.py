@@ -771,6 +771,14 @@ MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
     NodeParam(f"{DETECTOR_PREFIX}.max_phi", "double", "-",
               "upper clip of the residual's learned AR(1) coefficient; read-only", 0.995,
               lo=0.0, hi=1.0, hi_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.colour_s", "double", "s",
+              "residual history the detector learns the residual's colour from (an AR "
+              "whitening by AIC, kept across alarms and model changes, refitted every minute); "
+              "until it has that much it whitens each reference window by its own ARMA(1, 1); "
+              "0 = never; read-only", 300.0, lo=0.0, hi=86400.0),
+    NodeParam(f"{DETECTOR_PREFIX}.colour_lag_s", "double", "s",
+              "longest lag of that whitening (at most half of learn_s is used); read-only", 3.0,
+              lo=0.0, hi=600.0, lo_open=True),
 )}
 """Every parameter of the model node (:data:`MODEL_NODE`), by name, in declaration order."""
 DETECTOR_PARAMETERS: tuple[str, ...] = tuple(

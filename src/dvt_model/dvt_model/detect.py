@@ -1,10 +1,12 @@
-"""Change detection on the model residual: ARMA(1,1)-whitened two-sided CUSUM per output (pure).
+"""Change detection on the model residual: a whitened two-sided CUSUM per output (pure).
 
 The model node feeds every residual sample (measured minus predicted speed [rad/s], one value
 per output of :data:`~dvt_model.contract.SPEED_NAMES`) to :meth:`ChangeDetector.update`; the
 detector answers ``None`` or an :class:`Alarm`. O(1) per sample, plain Python floats in
-preallocated lists (no numpy, no container allocated per sample: about 1-2 us per sample); only
-the end of a reference window does one numpy pass over it (about 2 ms, once per ``learn_s``).
+preallocated lists (no container allocated per sample: about 1-2 us per sample, about 5 us
+with the colour's AR of up to 300 lags, one numpy product and sum per output); only the end of
+a reference window does one numpy pass over it (about 2 ms, once per ``learn_s``), and the end
+of a colour chunk one FFT and a few Toeplitz solves per output (once a minute).
 
 Statistic
 ---------
@@ -35,6 +37,25 @@ Statistic
    The figure is checked by simulation (:mod:`dvt_model.detect_sim`: ``simulate_clean``,
    ``benchmark``, ``python -m dvt_model.detect_sim``; ``docs/loop.md``).
 
+Colour
+------
+A residual with several time scales (the simulated plant's carrier 3: about 0.2, 0.6 and 1.4 s
+beside sensor noise) is not whitened by an ARMA(1, 1) learned on 20 s: the whitened residual
+keeps a slow wander and the CUSUM raises false alarms far above its design (docs/loop.md,
+"Colour"). So the detector also learns the residual's colour on a long history,
+``colour_s`` (300 s) of residual pooled in chunks of :data:`COLOUR_CHUNK_S`, each centred on its
+own mean (:func:`lagged_products`): an AR(p) by Yule-Walker with ``p`` by AIC up to
+:attr:`DetectorConfig.colour_order_max` (:func:`ar_by_aic`), refitted on the newest ``colour_s``
+whenever a chunk completes. From its first fit on (a new reference window starts then) every
+reference window learns only the level and the innovation scale (standard deviation of
+``a_t = c_t - sum_j a_j c_(t-j)``), and each sample is whitened by that AR; ``k``, ``h`` as
+above with the step gain ``1 - sum_j a_j``. The colour is kept across alarms and
+:meth:`~ChangeDetector.reset`; an alarm removes the history from its estimated change time on,
+a reset the chunk in progress, a gap or a non-finite sample ends a chunk (one shorter than
+``10 x`` the longest lag is dropped). Before the first fit (the first ``colour_s`` after a
+start) the detector runs with each window's ARMA(1, 1), and its false-alarm rate there is
+that design's on the residual at hand.
+
 On an alarm the detector returns an :class:`Alarm` (detection stamp, the estimated change time =
 the stamp of the first sample after the CUSUM's last zero, output, direction, estimated shift),
 then re-learns a new reference window and keeps running. Non-finite residuals are skipped;
@@ -46,6 +67,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -63,6 +85,11 @@ MAD_TO_SIGMA = 1.4826
 _MAD_REL_VAR = 1.36
 """Asymptotic variance of the MAD scale estimate relative to sigma^2, times the sample count."""
 _WINSOR = 4.0  # robust sigmas: winsorising bound of the reference window
+_COLOUR_LAGS_PER_ORDER = 10
+"""The colour's history holds at least this many samples per AR order (and so does a chunk)."""
+COLOUR_CHUNK_S = 60.0
+"""The colour's history is pooled in chunks of this length [s] (at least the reference
+window and ``10 x colour_lag_s``); a gap, a reset or an alarm ends a chunk early."""
 
 PREFIX = "detector"
 """Prefix of the model-node parameters that configure the detector (``detector.learn_s``...)."""
@@ -82,6 +109,11 @@ class DetectorConfig:
         max_gap_s: a stamp step longer than this is a gap [s] (the whitening skips a sample).
         max_phi: upper clip of the learned AR(1) coefficient [-].
         names: output names (residual order), default the contract's ``SPEED_NAMES``.
+        colour_s: residual history the long-window whitening learns the residual's colour from
+            [s]; until then, and with 0 always, every reference window whitens by its own
+            ARMA(1, 1). See "Colour" below.
+        colour_lag_s: longest lag of that whitening [s] (its AR order is chosen by AIC up to
+            :attr:`colour_order_max`: this in samples, at most half a reference window).
     """
 
     sample_rate_hz: float = 1000.0
@@ -91,6 +123,8 @@ class DetectorConfig:
     max_gap_s: float = 0.05
     max_phi: float = 0.995
     names: tuple[str, ...] = SPEED_NAMES
+    colour_s: float = 300.0
+    colour_lag_s: float = 3.0
 
     def validated(self) -> DetectorConfig:
         """Return ``self`` if every field is admissible, else raise :class:`ParameterError`
@@ -123,7 +157,29 @@ class DetectorConfig:
         if not self.names or len(set(self.names)) != len(self.names) \
                 or not all(isinstance(n, str) and n for n in self.names):
             raise bad("names", self.names, "distinct non-empty output names")
+        colour = self.colour_s
+        if isinstance(colour, bool) or not isinstance(colour, int | float) \
+                or not math.isfinite(colour) or colour < 0:
+            raise bad("colour_s", colour, "a finite number >= 0 (0: no long-window whitening)")
+        positive("colour_lag_s", self.colour_lag_s)
+        lags = self.colour_order_max
+        if colour > 0 and colour * rate < _COLOUR_LAGS_PER_ORDER * lags:
+            raise bad("colour_s", colour,
+                      f"at least {_COLOUR_LAGS_PER_ORDER} x the longest lag "
+                      f"{lags / rate:g} s = {_COLOUR_LAGS_PER_ORDER * lags / rate:g} s, or 0")
         return self
+
+    @property
+    def colour_order_max(self) -> int:
+        """Largest AR order of the long-window whitening: ``colour_lag_s`` in samples, at most
+        half a reference window (which holds the whitening's history)."""
+        return max(1, min(round(self.colour_lag_s * self.sample_rate_hz),
+                          self.learn_samples // 2))
+
+    @property
+    def colour_samples(self) -> int:
+        """Samples of residual history the long-window whitening is learned from."""
+        return round(self.colour_s * self.sample_rate_hz)
 
     @property
     def learn_samples(self) -> int:
@@ -140,7 +196,9 @@ class Reference:
     ``sigma`` [rad/s] the residual's robust scale (MAD); ``k`` and ``h`` [whitened sigma] the
     CUSUM reference value and threshold; ``arl0_s`` [s] the designed mean time between false
     alarms of one side of this output; ``last_r``, ``last_a`` the filter state at the window's
-    end [rad/s].
+    end [rad/s]; ``order`` the AR order of the long-window whitening (0: the window's own
+    ARMA(1, 1)); ``gain`` [-] the steady-state response of the whitened residual to a step of the
+    residual (``(1 - phi) / (1 + theta)``, or ``1 - sum(a_j)`` of the AR whitening).
     """
 
     level: float
@@ -153,6 +211,8 @@ class Reference:
     arl0_s: float
     last_r: float = 0.0
     last_a: float = 0.0
+    order: int = 0
+    gain: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -219,7 +279,8 @@ class Alarm:
 class DetectorCounters:
     """Running counts: ``samples`` given to :meth:`ChangeDetector.update`, ``tested`` samples
     that went through the CUSUM, ``skipped`` non-finite ones, ``gaps`` stamp gaps, ``alarms``,
-    ``learned`` completed reference windows."""
+    ``learned`` completed reference windows, ``colour_fits`` fits of the long-window
+    whitening."""
 
     samples: int = 0
     tested: int = 0
@@ -227,6 +288,7 @@ class DetectorCounters:
     gaps: int = 0
     alarms: int = 0
     learned: int = 0
+    colour_fits: int = 0
     last_alarm: Alarm | None = field(default=None)
 
 
@@ -296,7 +358,48 @@ def design_threshold(k: float, rate_per_sample: float, learn_samples: int) -> fl
 _ACF_LAGS = 10  # autocorrelation lags used to estimate phi
 
 
-def reference_from_window(window: NDArray[np.float64], config: DetectorConfig) -> Reference:
+def lagged_products(x: NDArray[np.float64], max_lag: int) -> NDArray[np.float64]:
+    """``sum_t c_t c_(t+j)`` for ``j = 0..max_lag`` of ``x`` (1-D) centred on its own mean,
+    shape ``(max_lag + 1,)`` (by FFT; zeros beyond the series' length)."""
+    c = np.asarray(x, dtype=float) - float(np.mean(x))
+    n = c.size
+    size = 1 << max(1, (n + max_lag).bit_length())
+    f = np.fft.rfft(c, size)
+    out = np.fft.irfft(f * np.conj(f), size)[: max_lag + 1]
+    if out.size < max_lag + 1:
+        out = np.concatenate([out, np.zeros(max_lag + 1 - out.size)])
+    out[n:] = 0.0
+    return np.asarray(out, dtype=float)
+
+
+def ar_by_aic(acov: NDArray[np.float64], n: int, max_order: int) -> NDArray[np.float64]:
+    """AR coefficients ``a_1..a_p`` (``r_t = sum_j a_j r_(t-j) + e_t``) by Yule-Walker from the
+    biased autocovariances ``acov`` (lags ``0..>= max_order``) of ``n`` samples, ``p`` by AIC
+    (``n log var_p + 2 p``) among 0, 1, 2, 4, ... and ``max_order``; empty for ``p = 0``
+    (a white residual) or a zero series."""
+    from scipy.linalg import solve_toeplitz
+
+    g = np.asarray(acov, dtype=float)
+    if g.size < max_order + 1:
+        raise ParameterError(f"acov: expected at least {max_order + 1} lags, got {g.size}")
+    if not g[0] > 0:
+        return np.zeros(0)
+    orders = sorted({*(1 << e for e in range(max_order.bit_length()) if 1 << e <= max_order),
+                     max_order})
+    best, best_aic = np.zeros(0), n * math.log(float(g[0]))
+    for order in orders:
+        coef = np.asarray(solve_toeplitz(g[:order], g[1:order + 1]), dtype=float)
+        var = float(g[0] - np.sum(coef * g[1:order + 1]))
+        if not var > 0:
+            break
+        aic = n * math.log(var) + 2 * order
+        if aic < best_aic:
+            best, best_aic = coef, aic
+    return best
+
+
+def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
+                          colour: NDArray[np.float64] | None = None) -> Reference:
     """Learn one output's :class:`Reference` from its reference window (1-D, [rad/s]).
 
     ARMA(1, 1) by the method of moments on the winsorised, centred window: ``phi`` from the
@@ -305,6 +408,10 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig) -
     [0, ``max_phi``]), ``theta`` from the lag-1 autocorrelation ``rho_e`` of
     ``e = c - phi c_prev`` (the invertible root of ``theta / (1 + theta^2) = rho_e``); the
     innovation scale from the MAD of ``a = e - theta a_prev`` (the whitened window).
+
+    With ``colour`` (AR coefficients ``a_1..a_p`` of :func:`ar_by_aic`, learned on a long
+    history) the window gives only the level and the scale: ``a_t = c_t - sum_j a_j c_(t-j)``
+    from lag ``p`` on, ``phi`` and ``theta`` 0, ``order`` ``p``.
     """
     from scipy.signal import lfilter
 
@@ -316,6 +423,8 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig) -
     level = float(r.mean())
     c = r - level
     n = c.size
+    if colour is not None:
+        return _ar_reference(window, c, level, mad, np.asarray(colour, dtype=float), config)
     # elementwise products, not BLAS dot: no thread pool wakes up inside the 1 kHz loop
     den = float(np.sum(c * c))
     phi = 0.0
@@ -345,14 +454,43 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig) -
         sigma_e = max(abs(level) * 1e-9, 1e-12)  # a constant residual: any change alarms
     sigma = mad if mad > 0 else sigma_e
     gain = (1.0 - phi) / (1.0 + theta)  # steady-state response of a to a step in r
+    k, h, arl0_s = _design(sigma, sigma_e, gain, config)
+    return Reference(level=level, phi=phi, theta=theta, sigma_e=sigma_e, sigma=sigma, k=k,
+                     h=h, arl0_s=arl0_s, last_r=float(window[-1]),
+                     last_a=float(a[-1]) if a.size else 0.0, gain=gain)
+
+
+def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig
+            ) -> tuple[float, float, float]:
+    """``k``, ``h`` and one side's designed mean time between false alarms [s] of an output
+    whose residual scale is ``sigma``, innovation scale ``sigma_e`` and step gain ``gain``."""
     k = 0.5 * config.shift_sigma * sigma * gain / sigma_e
     n_sides = 2 * len(config.names)
     rate = 1.0 / (config.false_alarm_period_s * config.sample_rate_hz * n_sides)
     h = design_threshold(k, 2.0 * rate, config.learn_samples)
     arl_side = 1.0 / (0.5 * false_alarm_rate(k, h, config.learn_samples))
-    return Reference(level=level, phi=phi, theta=theta, sigma_e=sigma_e, sigma=sigma, k=k,
-                     h=h, arl0_s=arl_side / config.sample_rate_hz,
-                     last_r=float(window[-1]), last_a=float(a[-1]) if a.size else 0.0)
+    return k, h, arl_side / config.sample_rate_hz
+
+
+def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: float,
+                  mad: float, coef: NDArray[np.float64], config: DetectorConfig) -> Reference:
+    """:func:`reference_from_window` with the long-window whitening ``coef`` (``a_1..a_p``)."""
+    from scipy.signal import lfilter
+
+    p = coef.size
+    a = np.asarray(lfilter(np.concatenate([[1.0], -coef]), [1.0], c), dtype=float)[p:]
+    # the standard deviation, not the MAD: the window is winsorised already, and with the
+    # small k of a slow residual the false-alarm rate follows the innovations' variance
+    # closely (a MAD 2.4 % below it doubled the rate on the simulated plant's sun shaft)
+    sigma_e = float(np.std(a)) if a.size else 0.0
+    if not sigma_e > 0:
+        sigma_e = max(abs(level) * 1e-9, 1e-12)  # a constant residual: any change alarms
+    sigma = mad if mad > 0 else sigma_e
+    # Yule-Walker on biased autocovariances is stationary: sum(a_j) < 1
+    gain = max(1.0 - float(np.sum(coef)), 1e-6)
+    k, h, arl0_s = _design(sigma, sigma_e, gain, config)
+    return Reference(level=level, phi=0.0, theta=0.0, sigma_e=sigma_e, sigma=sigma, k=k, h=h,
+                     arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain)
 
 
 # -------------------------------------------------------------------------- the detector
@@ -388,6 +526,22 @@ class ChangeDetector:
         self._learn_from = math.nan
         self._last_stamp = -math.inf
         self._have_prev = False
+        # long-window whitening ("Colour" in docs/loop.md): the current chunk of residual
+        # history, the pooled lagged products of the chunks before it, the fitted AR
+        # coefficients (reversed, per output) and a doubled ring of the last P residuals
+        cfg = self.config
+        self._P = cfg.colour_order_max if cfg.colour_s > 0 else 0
+        self._chunk_len = max(round(COLOUR_CHUNK_S * cfg.sample_rate_hz), self._L,
+                              _COLOUR_LAGS_PER_ORDER * self._P)
+        self._chunk: list[list[float]] = [[] for _ in range(self.n)]
+        self._chunk_end = -math.inf
+        self._pool: deque[tuple[float, int, NDArray[np.float64]]] = deque()
+        self._colour: list[NDArray[np.float64]] | None = None
+        self._colour_rev: list[NDArray[np.float64]] = []
+        self._order = 0
+        self._ring = np.zeros((self.n, 2 * max(self._P, 1)))
+        self._w = 0
+        self._hist = 0
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -401,8 +555,37 @@ class ChangeDetector:
         """Fraction of the reference window collected [0..1]."""
         return min(1.0, self._filled / self._L)
 
+    @property
+    def colour_progress(self) -> float:
+        """Fraction of the long-window whitening's history collected [0..1] (1 once fitted;
+        0 without one)."""
+        if self._P == 0:
+            return 0.0
+        if self._colour is not None:
+            return 1.0
+        pooled = sum(m for _, m, _ in self._pool) + len(self._chunk[0])
+        return min(1.0, pooled / self.config.colour_samples)
+
+    @property
+    def colour_in_use(self) -> bool:
+        """Whether the samples tested now are whitened by the long-window colour (from the end
+        of the first reference window after its first fit on)."""
+        return self._order > 0
+
+    @property
+    def colour_history_s(self) -> float:
+        """Residual history pooled for the long-window whitening [s] (whole chunks only)."""
+        return sum(m for _, m, _ in self._pool) / self.config.sample_rate_hz
+
     def reset(self) -> None:
-        """Forget the reference and start learning a new one (the CUSUMs restart at 0)."""
+        """Forget the reference and start learning a new one (the CUSUMs restart at 0); the
+        residual's colour learned on the long window is kept, the chunk in progress dropped
+        (the model may have changed)."""
+        for ch in self._chunk:
+            ch.clear()
+        self._relearn()
+
+    def _relearn(self) -> None:
         self._filled = 0
         self._have_prev = False
         self._learn_from = math.nan
@@ -420,6 +603,7 @@ class ChangeDetector:
         c = self.counters
         out = {"state": "learning" if self.learning else "testing",
                "learn_progress": f"{self.learn_progress:.2f}",
+               "colour_progress": f"{self.colour_progress:.2f}",
                "samples": str(c.samples), "tested": str(c.tested), "skipped": str(c.skipped),
                "gaps": str(c.gaps), "alarms": str(c.alarms),
                "false_alarm_period_s": f"{self.config.false_alarm_period_s:g}"}
@@ -427,6 +611,7 @@ class ChangeDetector:
             name = self.config.names[i]
             out.update({f"{name}.sigma_rad_s": f"{ref.sigma:.6g}", f"{name}.phi": f"{ref.phi:.4f}",
                         f"{name}.k": f"{ref.k:.4g}", f"{name}.h": f"{ref.h:.4g}",
+                        f"{name}.ar_order": str(ref.order),
                         f"{name}.cusum_up": f"{self._hi[i]:.3g}",
                         f"{name}.cusum_down": f"{self._lo[i]:.3g}"})
         if c.last_alarm is not None:
@@ -450,10 +635,20 @@ class ChangeDetector:
             if not math.isfinite(residual[i]):
                 c.skipped += 1
                 self._have_prev = False
+                if self._P:
+                    self._end_chunk()
                 return None
         t = float(stamp_s)
         gap = not (0.0 < t - self._last_stamp <= self.config.max_gap_s)
         self._last_stamp = t
+        if self._P:
+            if gap:
+                self._end_chunk()
+            for i in range(n):
+                self._chunk[i].append(float(residual[i]))
+            self._chunk_end = t
+            if len(self._chunk[0]) >= self._chunk_len and self._end_chunk():
+                return None  # the first colour: a new reference window starts now
         if self._filled < self._L:
             j = self._filled
             if j == 0:
@@ -465,6 +660,8 @@ class ChangeDetector:
                 self._finish_learning()
                 self._have_prev = True
             return None
+        if self._order:
+            return self._update_ar(t, residual, gap)
         if gap or not self._have_prev:
             if gap:
                 c.gaps += 1
@@ -504,10 +701,98 @@ class ChangeDetector:
             if alarm is None and (hi > self._h[i] or lo > self._h[i]):
                 alarm = self._alarm(i, t, up=hi - self._h[i] >= lo - self._h[i])
         if alarm is not None:
-            c.alarms += 1
-            c.last_alarm = alarm
-            self.reset()
+            self._after_alarm(alarm)
         return alarm
+
+    def _update_ar(self, t: float, residual: Sequence[float], gap: bool) -> Alarm | None:
+        """:meth:`update` of a testing sample with the long-window whitening."""
+        c = self.counters
+        P = self._P
+        if gap:
+            c.gaps += 1
+            self._hist = 0
+        w = self._w
+        ring = self._ring
+        test = self._hist >= self._order
+        if test:
+            c.tested += 1
+        alarm: Alarm | None = None
+        for i in range(self.n):
+            r = float(residual[i])
+            if test:
+                coef = self._colour_rev[i]
+                p = coef.size
+                # elementwise, not BLAS dot (no thread pool wakes up in the 1 kHz loop)
+                pred = float(np.sum(coef * ring[i, w + P - p:w + P])) if p else 0.0
+                z = (r - pred - self._level[i]) * self._inv_s[i]
+                k = self._k[i]
+                hi = self._hi[i] + z - k
+                if hi > 0.0:
+                    if self._hi[i] == 0.0:
+                        self._hi_t[i] = t
+                        self._hi_n[i] = 0
+                    self._hi_n[i] += 1
+                else:
+                    hi = 0.0
+                lo = self._lo[i] - z - k
+                if lo > 0.0:
+                    if self._lo[i] == 0.0:
+                        self._lo_t[i] = t
+                        self._lo_n[i] = 0
+                    self._lo_n[i] += 1
+                else:
+                    lo = 0.0
+                self._hi[i] = hi
+                self._lo[i] = lo
+                if alarm is None and (hi > self._h[i] or lo > self._h[i]):
+                    alarm = self._alarm(i, t, up=hi - self._h[i] >= lo - self._h[i])
+            ring[i, w] = r
+            ring[i, w + P] = r
+        self._w = w + 1 if w + 1 < P else 0
+        if self._hist < P:
+            self._hist += 1
+        if alarm is not None:
+            self._after_alarm(alarm)
+        return alarm
+
+    def _after_alarm(self, alarm: Alarm) -> None:
+        """Count the alarm, drop the residual history since its change time from the colour's
+        chunks (it holds the change) and learn a new reference."""
+        c = self.counters
+        c.alarms += 1
+        c.last_alarm = alarm
+        if self._P:
+            while self._pool and self._pool[-1][0] >= alarm.change_s:
+                self._pool.pop()
+        self.reset()
+
+    def _end_chunk(self) -> bool:
+        """Pool the chunk in progress (if long enough) and refit the colour once enough is
+        pooled. Returns whether this was the colour's first fit (a new reference window then
+        starts: the present one was whitened otherwise)."""
+        m = len(self._chunk[0])
+        if m < _COLOUR_LAGS_PER_ORDER * self._P:
+            for ch in self._chunk:
+                ch.clear()
+            return False
+        P = self._P
+        prods = np.stack([lagged_products(np.asarray(ch, dtype=float), P) for ch in self._chunk])
+        for ch in self._chunk:
+            ch.clear()
+        self._pool.append((self._chunk_end, m, prods))
+        need = self.config.colour_samples
+        total = sum(mm for _, mm, _ in self._pool)
+        while self._pool and total - self._pool[0][1] >= need:
+            total -= self._pool.popleft()[1]
+        if total < need:
+            return False
+        acov = np.sum([pp for _, _, pp in self._pool], axis=0) / total
+        first = self._colour is None
+        self._colour = [ar_by_aic(acov[i], total, P) for i in range(self.n)]
+        self.counters.colour_fits += 1
+        if first:
+            self._relearn()
+        return first
 
     def _alarm(self, i: int, t: float, up: bool) -> Alarm:
         ref = self.references[i]
@@ -515,17 +800,30 @@ class ChangeDetector:
         count = self._hi_n[i] if up else self._lo_n[i]
         # CUSUM estimate of the whitened shift: k + S / n; back to the residual's units.
         dz = ref.k + stat / max(count, 1)
-        gain = (1.0 - ref.phi) / (1.0 + ref.theta)
-        shift = (1.0 if up else -1.0) * dz * ref.sigma_e / max(gain, 1e-9)
+        shift = (1.0 if up else -1.0) * dz * ref.sigma_e / max(ref.gain, 1e-9)
         return Alarm(stamp_s=t, change_s=self._hi_t[i] if up else self._lo_t[i], output=i,
                      name=self.config.names[i], direction=1 if up else -1, statistic=stat,
                      threshold=ref.h, samples=count, shift=shift,
                      shift_sigma=shift / ref.sigma, level=ref.level, sigma=ref.sigma)
 
     def _finish_learning(self) -> None:
-        refs = [reference_from_window(np.asarray(self._buf[i]), self.config)
+        colour = self._colour
+        refs = [reference_from_window(np.asarray(self._buf[i]), self.config,
+                                      None if colour is None else colour[i])
                 for i in range(self.n)]
         self.references = refs
+        if colour is not None:
+            self._colour_rev = [np.ascontiguousarray(a[::-1]) for a in colour]
+            self._order = max(a.size for a in colour)
+            P = self._P
+            for i in range(self.n):
+                tail = np.asarray(self._buf[i][-P:], dtype=float)
+                self._ring[i, :P] = tail
+                self._ring[i, P:] = tail
+            self._w = 0
+            self._hist = P
+            # a white output (order 0) still tests: make _order count as "AR mode"
+            self._order = max(self._order, 1) if P else 0
         for i, ref in enumerate(refs):
             self._level[i] = ref.level
             self._phi[i] = ref.phi
@@ -533,6 +831,8 @@ class ChangeDetector:
             self._prev[i] = ref.last_r
             self._prev_a[i] = ref.last_a
             self._inv_s[i] = 1.0 / ref.sigma_e
+            if ref.order or colour is not None:
+                self._level[i] = ref.level * ref.gain  # subtracted from r - prediction
             self._k[i] = ref.k
             self._h[i] = ref.h
             self._hi[i] = self._lo[i] = 0.0

@@ -152,7 +152,13 @@ from dvt_model.contract import (
     NodeParam,
     model_reset_detector_service,
 )
-from dvt_model.detect import Alarm, ChangeDetector, reference_from_window
+from dvt_model.detect import (
+    Alarm,
+    ChangeDetector,
+    ar_by_aic,
+    lagged_products,
+    reference_from_window,
+)
 from dvt_model.errors import DvtModelError
 from dvt_model.predictor import Predictor, ResidualBlocks
 from dvt_model.recording import cdr
@@ -171,9 +177,16 @@ DETECTOR_STATUS = f"{MODEL_NODE}: change detector"
 def _warm_up(setup: DetectorSetup) -> None:
     """Learn one reference from noise at start-up: the first end of a reference window then
     costs its ~2 ms, not the imports (scipy.signal) and first calls that took seconds on a
-    loaded machine and would stall the 1 kHz stream."""
+    loaded machine and would stall the 1 kHz stream; so does the colour's first fit
+    (scipy.linalg), minutes later."""
     rng = np.random.default_rng(0)
-    reference_from_window(rng.standard_normal(setup.config.learn_samples), setup.config)
+    cfg = setup.config
+    window = rng.standard_normal(cfg.learn_samples)
+    reference_from_window(window, cfg)
+    if cfg.colour_s > 0:
+        lags = cfg.colour_order_max
+        colour = ar_by_aic(lagged_products(window, lags) / window.size, window.size, lags)
+        reference_from_window(window, cfg, colour)
 
 
 def _descriptor(spec: NodeParam) -> ParameterDescriptor:

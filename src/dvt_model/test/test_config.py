@@ -111,6 +111,9 @@ BAD = [
      "at least 10 samples"),
     ("detector.max_gap_s", {"detector.max_gap_s": float("nan")}, "detector.max_gap_s"),
     ("detector.max_phi", {"detector.max_phi": -0.1}, r"\[0, 1\)"),
+    ("detector.colour_s", {"detector.colour_s": -1.0}, r"\[0, 86400\]"),
+    ("detector.colour_s", {"detector.colour_s": 10.0}, "at least 10 x the longest lag"),
+    ("detector.colour_lag_s", {"detector.colour_lag_s": 0.0}, r"\(0, 600\]"),
     ("brake_gain", {"brake_gain": [8.0, 8.0, 8.0]}, "unknown parameter"),
     ("no_such_parameter", {"no_such_parameter": 1.0}, "unknown parameter"),
 ]

@@ -24,7 +24,8 @@ def test_schema_names_and_defaults():
                                       "detector.block_s", "detector.settle_s",
                                       "detector.learn_s",
                                       "detector.shift_sigma", "detector.false_alarm_period_s",
-                                      "detector.max_gap_s", "detector.max_phi"]
+                                      "detector.max_gap_s", "detector.max_phi",
+                                      "detector.colour_s", "detector.colour_lag_s"]
     for name, spec in MODEL_PARAMETERS.items():
         assert spec.name == name
         assert spec.description and spec.unit

@@ -77,8 +77,9 @@ def test_no_false_alarm_in_ten_minutes_of_clean_1khz_noise(phi: float, white: fl
     # A fixed-seed regression check of the class and its vectorised twin on clean data (at a
     # design of one false alarm per 4 h, an hour without one is the likely outcome, not a
     # bound): the false-alarm *rate* is measured in test_false_alarm_rate.py (slow tier).
-    # The detector class itself on 10 min of 1 kHz AR(1) residual, two outputs, 2 seeds ...
-    cfg = DetectorConfig()
+    # The detector class itself on 10 min of 1 kHz AR(1) residual, two outputs, 2 seeds, each
+    # window whitened by its own ARMA(1, 1) as in the twin (no colour: test_detect_colour.py) ...
+    cfg = DetectorConfig(colour_s=0.0)
     for seed in (11, 12):
         det = ChangeDetector(cfg)
         x, _ = ar1_noise(np.random.default_rng(seed), cfg.learn_samples + 600_000, 2, phi,

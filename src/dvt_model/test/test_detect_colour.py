@@ -1,0 +1,259 @@
+"""The change detector's long-window whitening ("Colour" in docs/loop.md), pure: the AR fit,
+when the colour is learned and used, and what an alarm removes from its history."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from dvt_model.detect import (
+    ChangeDetector,
+    DetectorConfig,
+    ar_by_aic,
+    lagged_products,
+    reference_from_window,
+)
+from dvt_model.errors import ParameterError
+
+RATE = 100.0  # Hz: the model node's detector rate (10-ms blocks)
+AR2 = (1.2, -0.35)  # a stationary AR(2): roots 0.7 and 0.5
+
+
+def ar2(rng: np.random.Generator, n: int, outputs: int = 2) -> np.ndarray:
+    """``(n, outputs)`` AR(2) series :data:`AR2` of unit innovations."""
+    return np.asarray(lfilter([1.0], [1.0, -AR2[0], -AR2[1]],
+                              rng.standard_normal((n + 500, outputs)), axis=0)[500:])
+
+
+def test_lagged_products_are_the_centred_sums() -> None:
+    x = np.random.default_rng(1).standard_normal(257) + 3.0
+    c = x - x.mean()
+    got = lagged_products(x, 300)
+    assert got.shape == (301,)
+    want = [float(np.sum(c[j:] * c[:c.size - j])) for j in range(257)]
+    assert np.allclose(got[:257], want, rtol=1e-9, atol=1e-9)
+    assert np.all(np.abs(got[257:]) < 1e-9)  # beyond the series: nothing
+
+
+def test_ar_by_aic_recovers_an_ar2() -> None:
+    n = 60_000
+    x = ar2(np.random.default_rng(2), n, 1)[:, 0]
+    coef = ar_by_aic(lagged_products(x, 64) / n, n, 64)
+    # standard error of each coefficient about sqrt((1 - 0.35^2) / n) = 0.004
+    assert coef.size >= 2 and coef[0] == pytest.approx(AR2[0], abs=0.03)
+    assert coef[1] == pytest.approx(AR2[1], abs=0.03)
+    assert np.all(np.abs(coef[2:]) < 0.03)
+    assert ar_by_aic(np.zeros(65), n, 64).size == 0  # a constant series: nothing to whiten
+    with pytest.raises(ParameterError, match="acov: expected at least 65 lags, got 10"):
+        ar_by_aic(np.ones(10), n, 64)
+
+
+def test_reference_with_colour_whitens_by_it() -> None:
+    cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=60.0, colour_lag_s=1.0).validated()
+    x = 0.5 + 0.01 * ar2(np.random.default_rng(3), cfg.learn_samples, 1)[:, 0]
+    ref = reference_from_window(x, cfg, np.asarray(AR2))
+    assert ref.order == 2 and ref.phi == 0.0 and ref.theta == 0.0
+    assert ref.level == pytest.approx(0.5, abs=0.01)
+    assert ref.sigma_e == pytest.approx(0.01, rel=0.05)  # the innovations' scale
+    assert ref.gain == pytest.approx(1.0 - sum(AR2))
+
+
+@pytest.mark.parametrize(("field", "value", "needle"), [
+    ("colour_s", -1.0, r"detector\.colour_s: expected a finite number >= 0"),
+    ("colour_s", 20.0, r"detector\.colour_s: expected at least 10 x the longest lag 3 s = "
+     r"30 s, or 0"),
+    ("colour_lag_s", 0.0, r"detector\.colour_lag_s: expected a finite number > 0"),
+])
+def test_colour_settings_errors_name_the_parameter(field: str, value: float, needle: str
+                                                   ) -> None:
+    base = {"sample_rate_hz": RATE, "colour_s": 300.0}
+    with pytest.raises(ParameterError, match=needle):
+        DetectorConfig(**{**base, field: value}).validated()  # type: ignore[arg-type]
+
+
+def test_the_longest_lag_is_at_most_half_a_reference_window() -> None:
+    assert DetectorConfig(sample_rate_hz=RATE).colour_order_max == 300  # 3 s
+    assert DetectorConfig(sample_rate_hz=RATE, learn_s=4.0).colour_order_max == 200
+    assert DetectorConfig(sample_rate_hz=RATE, colour_lag_s=0.001).colour_order_max == 1
+
+
+def test_colour_is_learned_after_colour_s_and_then_whitens() -> None:
+    cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=120.0,
+                         colour_lag_s=1.0).validated()
+    det = ChangeDetector(cfg)
+    x = 0.01 * ar2(np.random.default_rng(4), round(200 * RATE))
+    first_fit = None
+    for j, row in enumerate(x.tolist()):
+        det.update(j / RATE, row)
+        if first_fit is None and det.counters.colour_fits:
+            first_fit = j
+            # a new reference window starts: the one in use was whitened otherwise
+            assert det.learning and det.colour_progress == 1.0
+        if first_fit is None:
+            assert det.references == [] or all(r.order == 0 for r in det.references)
+    # the colour comes with the chunk that completes colour_s of history (60-s chunks)
+    assert first_fit == round(120 * RATE) - 1
+    assert det.counters.colour_fits == 2  # and is refitted on every later chunk (at 180 s)
+    assert det.colour_history_s == pytest.approx(120.0)  # the newest colour_s only
+    orders = [r.order for r in det.references]
+    assert all(o >= 2 for o in orders), orders
+    status = det.status()
+    assert status["colour_progress"] == "1.00" and status["sun_shaft.ar_order"] == str(orders[0])
+    assert det.counters.alarms == 0
+
+
+def test_reset_keeps_the_colour_and_an_alarm_drops_the_history_since_the_change() -> None:
+    cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=120.0,
+                         colour_lag_s=1.0).validated()
+    det = ChangeDetector(cfg)
+    rng = np.random.default_rng(5)
+    x = 0.01 * ar2(rng, round(300 * RATE))
+    # chunks end at 60 and 120 s (the colour), the reset at 130 s drops the one in progress,
+    # the next end at 190 and 250 s; a step of 1.5 residual sigmas on carrier 3 at 249.5 s
+    sigma = 0.01 * math.sqrt((1 - AR2[1]) / ((1 + AR2[1]) * ((1 - AR2[1]) ** 2 - AR2[0] ** 2)))
+    x[round(249.5 * RATE):, 1] += 1.5 * sigma
+    alarm = None
+    history_at_250 = None
+    for j, row in enumerate(x.tolist()):
+        a = det.update(j / RATE, row)
+        if j == round(250 * RATE):
+            history_at_250 = det.colour_history_s
+        if a is not None:
+            alarm = a
+            break
+        if j == round(130 * RATE):
+            det.reset()  # a model change: the colour stays
+            assert det.counters.colour_fits == 1 and det.learning
+    assert alarm is not None and alarm.name == "carrier3" and alarm.direction == 1
+    assert 248.5 <= alarm.change_s <= 250.0 < alarm.stamp_s
+    # the chunk that ended at 250 s held the change: the alarm took it out again
+    assert history_at_250 == pytest.approx(120.0)
+    assert det.colour_history_s == pytest.approx(60.0) and det.learning
+
+
+def test_gaps_and_non_finite_samples_end_a_chunk() -> None:
+    cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=120.0,
+                         colour_lag_s=1.0).validated()
+    det = ChangeDetector(cfg)
+    x = 0.01 * ar2(np.random.default_rng(6), round(100 * RATE))
+    for j, row in enumerate(x[:round(45 * RATE)].tolist()):
+        det.update(j / RATE, row)
+    det.update(45.0, [math.nan, 0.0])  # ends a 45-s chunk: pooled (>= 10 x 1 s of lags)
+    assert det.colour_history_s == pytest.approx(45.0)
+    for j, row in enumerate(x[round(45 * RATE):round(50 * RATE)].tolist()):
+        det.update(45.01 + j / RATE, row)
+    det.update(60.0, [0.0, 0.0])  # a stamp gap ends a 5-s chunk: too short, dropped
+    assert det.colour_history_s == pytest.approx(45.0)
+    assert det.counters.skipped == 1 and det.counters.colour_fits == 0
+
+
+# ------------------------------------------------------------- the false-alarm rate (slow)
+COLOURS = (  # (label, [(AR(1) coefficient, standard deviation), ...], white noise std)
+    ("white", [], 1.0),
+    ("AR(0.98) + white 0.5", [(0.98, 1.0)], 0.5),
+    ("AR(0.995) 0.5 + AR(0.9) + white 0.5", [(0.995, 0.5), (0.9, 1.0)], 0.5),
+)
+"""Residual colours at the node's detector rate (100 Hz): white, carrier 3's ARMA(1, 1)-like
+colour of docs/loop.md section 6, and two time scales (2 s and 0.1 s) beside sensor noise.
+(On these three the ARMA(1, 1) of each window meets its design too: 0-14 false alarms in 2 h
+on three seeds of the third; the simulated plant's residual, where it does not, is
+tests/test_detector_clean_plant.py's.)"""
+COLOUR_HOURS = 20.0  # tested hours per colour (two independent halves, one per worker)
+COLOUR_SEED = 20261  # fixed before the first run; never tuned to pass
+HOUR = round(3600 * RATE)
+
+
+def _residual(rng: np.random.Generator, parts: list[tuple[float, float]], white: float,
+              n: int, state: list[np.ndarray]) -> np.ndarray:
+    """``(n, 2)`` samples of a colour of :data:`COLOURS`, continuing the filter ``state``
+    (one entry per AR part, updated in place; an empty entry starts it stationary)."""
+    x = white * rng.standard_normal((n, 2))
+    for j, (phi, sd) in enumerate(parts):
+        if state[j].size == 0:
+            state[j] = phi * sd * rng.standard_normal((1, 2))
+        w = rng.standard_normal((n, 2)) * sd * math.sqrt(1 - phi * phi)
+        y, state[j] = lfilter([1.0], [1.0, -phi], w, axis=0, zi=state[j])
+        x += y
+    return x
+
+
+def colour_run(job: tuple[int, int, float, float]) -> tuple[int, float, int, float]:
+    """One half (``half`` 0 or 1: independent seeds) of a colour of :data:`COLOURS` through
+    :class:`ChangeDetector` with the model node's settings and ``colour_s`` (0: the ARMA(1, 1)
+    of each window only) until ``hours`` are tested in the phase under test: (alarms, tested
+    hours) while the colour is in use, and the same before it."""
+    from dataclasses import replace
+
+    from dvt_model.config import detector_config
+
+    index, half, hours, colour_s = job
+    _, parts, white = COLOURS[index]
+    setup = detector_config({})
+    assert setup is not None
+    cfg = replace(setup.config, colour_s=colour_s).validated()
+    det = ChangeDetector(cfg)
+    rng = np.random.default_rng([COLOUR_SEED, index, half, round(colour_s)])
+    state = [np.zeros(0) for _ in parts]
+    counts = [[0, 0], [0, 0]]  # [before the colour, with it] x [alarms, tested samples]
+    phase_under_test = 1 if colour_s else 0
+    j = 0
+    while counts[phase_under_test][1] < hours * HOUR:
+        for row in _residual(rng, parts, white, HOUR // 10, state).tolist():
+            phase = int(det.colour_in_use)
+            tested = det.counters.tested
+            alarm = det.update(j / RATE, row)
+            counts[phase][1] += det.counters.tested - tested
+            counts[phase][0] += alarm is not None
+            j += 1
+    (a0, t0), (a1, t1) = counts
+    return a1, t1 / HOUR, a0, t0 / HOUR
+
+
+@pytest.mark.slow  # 60 simulated hours of the class at 100 Hz on two workers (about 1 min)
+@pytest.mark.timeout(900)
+def test_false_alarm_rate_with_the_colour_meets_the_design() -> None:
+    """With its colour learned (``detector.colour_s`` 300 s, the node's default) the model
+    node's detector meets its design (``detector.false_alarm_period_s``, one false alarm per
+    4 h) on every colour of :data:`COLOURS`: fails when a colour's one-sided 95 % lower bound of
+    the rate (Poisson, chi-square) is above the design, or its upper bound above the
+    requirement of one per hour (docs/loop.md section 1)."""
+    import gc
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from scipy.stats import chi2
+
+    from dvt_model.config import detector_config
+
+    def lower(n: int, t: float) -> float:
+        return 0.0 if n == 0 else float(chi2.ppf(0.05, 2 * n)) / (2 * t)
+
+    def upper(n: int, t: float) -> float:
+        return float(chi2.ppf(0.95, 2 * n + 2)) / (2 * t)
+
+    setup = detector_config({})
+    assert setup is not None
+    design = 3600.0 / setup.config.false_alarm_period_s  # per hour
+    colour_s = setup.config.colour_s
+    jobs = [(i, half, COLOUR_HOURS / 2, colour_s) for i in range(len(COLOURS))
+            for half in (0, 1)]
+    gc.freeze()  # a forked worker never finalises what it inherited
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("fork")) as pool:
+        out = list(pool.map(colour_run, jobs))
+    gc.unfreeze()
+    failures = []
+    for i, (label, _, _) in enumerate(COLOURS):
+        runs = [o for job, o in zip(jobs, out, strict=True) if job[0] == i]
+        alarms, hours = sum(r[0] for r in runs), sum(r[1] for r in runs)
+        before, before_h = sum(r[2] for r in runs), sum(r[3] for r in runs)
+        lo, hi = lower(alarms, hours), upper(alarms, hours)
+        print(f"\n{label:38s} with the colour: {alarms:3d} in {hours:5.1f} h, "
+              f"{alarms / hours:.3f}/h (one-sided 95 % {lo:.3f} / {hi:.3f}); before it "
+              f"(ARMA(1, 1)): {before} in {before_h:.2f} h")
+        if lo > design or hi > 1.0:
+            failures.append(f"{label}: {alarms} false alarms in {hours:.1f} h ({lo:.3f} to "
+                            f"{hi:.3f}/h) against the design {design:.3f}/h")
+    assert not failures, "\n".join(failures)
