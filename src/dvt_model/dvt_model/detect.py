@@ -678,31 +678,36 @@ class ChangeDetector:
             a = (r - lev) - self._phi[i] * (self._prev[i] - lev) - self._theta[i] * self._prev_a[i]
             self._prev[i] = r
             self._prev_a[i] = a
-            z = a * self._inv_s[i]
-            k = self._k[i]
-            hi = self._hi[i] + z - k
-            if hi > 0.0:
-                if self._hi[i] == 0.0:
-                    self._hi_t[i] = t
-                    self._hi_n[i] = 0
-                self._hi_n[i] += 1
-            else:
-                hi = 0.0
-            lo = self._lo[i] - z - k
-            if lo > 0.0:
-                if self._lo[i] == 0.0:
-                    self._lo_t[i] = t
-                    self._lo_n[i] = 0
-                self._lo_n[i] += 1
-            else:
-                lo = 0.0
-            self._hi[i] = hi
-            self._lo[i] = lo
-            if alarm is None and (hi > self._h[i] or lo > self._h[i]):
-                alarm = self._alarm(i, t, up=hi - self._h[i] >= lo - self._h[i])
+            if self._cusum(i, a * self._inv_s[i], t) and alarm is None:
+                alarm = self._alarm(i, t, up=self._hi[i] >= self._lo[i])
         if alarm is not None:
             self._after_alarm(alarm)
         return alarm
+
+    def _cusum(self, i: int, z: float, t: float) -> bool:
+        """One step of output ``i``'s two CUSUMs on the whitened sample ``z`` (stamp ``t``);
+        whether either is above ``h``."""
+        k = self._k[i]
+        hi = self._hi[i] + z - k
+        if hi > 0.0:
+            if self._hi[i] == 0.0:
+                self._hi_t[i] = t
+                self._hi_n[i] = 0
+            self._hi_n[i] += 1
+        else:
+            hi = 0.0
+        lo = self._lo[i] - z - k
+        if lo > 0.0:
+            if self._lo[i] == 0.0:
+                self._lo_t[i] = t
+                self._lo_n[i] = 0
+            self._lo_n[i] += 1
+        else:
+            lo = 0.0
+        self._hi[i] = hi
+        self._lo[i] = lo
+        h = self._h[i]
+        return hi > h or lo > h
 
     def _update_ar(self, t: float, residual: Sequence[float], gap: bool) -> Alarm | None:
         """:meth:`update` of a testing sample with the long-window whitening."""
@@ -725,27 +730,8 @@ class ChangeDetector:
                 # elementwise, not BLAS dot (no thread pool wakes up in the 1 kHz loop)
                 pred = float(np.sum(coef * ring[i, w + P - p:w + P])) if p else 0.0
                 z = (r - pred - self._level[i]) * self._inv_s[i]
-                k = self._k[i]
-                hi = self._hi[i] + z - k
-                if hi > 0.0:
-                    if self._hi[i] == 0.0:
-                        self._hi_t[i] = t
-                        self._hi_n[i] = 0
-                    self._hi_n[i] += 1
-                else:
-                    hi = 0.0
-                lo = self._lo[i] - z - k
-                if lo > 0.0:
-                    if self._lo[i] == 0.0:
-                        self._lo_t[i] = t
-                        self._lo_n[i] = 0
-                    self._lo_n[i] += 1
-                else:
-                    lo = 0.0
-                self._hi[i] = hi
-                self._lo[i] = lo
-                if alarm is None and (hi > self._h[i] or lo > self._h[i]):
-                    alarm = self._alarm(i, t, up=hi - self._h[i] >= lo - self._h[i])
+                if self._cusum(i, z, t) and alarm is None:
+                    alarm = self._alarm(i, t, up=self._hi[i] >= self._lo[i])
             ring[i, w] = r
             ring[i, w + P] = r
         self._w = w + 1 if w + 1 < P else 0
