@@ -3,8 +3,8 @@
 The model node feeds every residual sample (measured minus predicted speed [rad/s], one value
 per output of :data:`~dvt_model.contract.SPEED_NAMES`) to :meth:`ChangeDetector.update`; the
 detector answers ``None`` or an :class:`Alarm`. O(1) per sample, plain Python floats in
-preallocated lists (no container allocated per sample: about 1-2 us per sample, about 5 us
-with the colour's AR of up to 300 lags, one numpy product and sum per output); only the end of
+preallocated lists (no container allocated per sample: about 1.5 us per sample, about 5 us
+with the colour, one numpy dot per output); only the end of
 a reference window does one numpy pass over it (about 2 ms, once per ``learn_s``), and the end
 of a colour chunk one FFT and a few Toeplitz solves per output (once a minute).
 
@@ -87,6 +87,8 @@ _MAD_REL_VAR = 1.36
 _WINSOR = 4.0  # robust sigmas: winsorising bound of the reference window
 _COLOUR_LAGS_PER_ORDER = 10
 """The colour's history holds at least this many samples per AR order (and so does a chunk)."""
+MAX_COLOUR_ORDER = 2000
+"""Largest AR order of the colour (its per-sample dot product stays small and on one thread)."""
 COLOUR_CHUNK_S = 60.0
 """The colour's history is pooled in chunks of this length [s] (at least the reference
 window and ``10 x colour_lag_s``); a gap, a reset or an alarm ends a chunk early."""
@@ -172,9 +174,10 @@ class DetectorConfig:
     @property
     def colour_order_max(self) -> int:
         """Largest AR order of the long-window whitening: ``colour_lag_s`` in samples, at most
-        half a reference window (which holds the whitening's history)."""
+        half a reference window (which holds the whitening's history) and
+        :data:`MAX_COLOUR_ORDER`."""
         return max(1, min(round(self.colour_lag_s * self.sample_rate_hz),
-                          self.learn_samples // 2))
+                          self.learn_samples // 2, MAX_COLOUR_ORDER))
 
     @property
     def colour_samples(self) -> int:
@@ -727,8 +730,9 @@ class ChangeDetector:
             if test:
                 coef = self._colour_rev[i]
                 p = coef.size
-                # elementwise, not BLAS dot (no thread pool wakes up in the 1 kHz loop)
-                pred = float(np.sum(coef * ring[i, w + P - p:w + P])) if p else 0.0
+                # a BLAS dot of at most MAX_COLOUR_ORDER elements: OpenBLAS runs it on the
+                # calling thread (its pool starts above 10 000), a third of np.sum(a * b)
+                pred = float(np.dot(coef, ring[i, w + P - p:w + P])) if p else 0.0
                 z = (r - pred - self._level[i]) * self._inv_s[i]
                 if self._cusum(i, z, t) and alarm is None:
                     alarm = self._alarm(i, t, up=self._hi[i] >= self._lo[i])
