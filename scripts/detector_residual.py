@@ -35,13 +35,16 @@ About 2.5 minutes with the defaults on two cores, 4 more with ``--trial``.
 Usage::
 
     .venv/bin/python scripts/detector_residual.py [--seeds 3100 3101 3102 3103] [--seconds 900]
+        [--trial] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
+import sys
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
@@ -194,12 +197,19 @@ def long_window_whitening(recs: list[np.ndarray], j: int, colour: int, test: int
     return zs, orders
 
 
+def rate_bounds(alarms: int, hours: float) -> list[float]:
+    """One-sided 95 % Poisson bounds ``[lower, upper]`` of ``alarms / hours`` [1/h]."""
+    if hours <= 0:
+        return [0.0, math.inf]
+    lo = 0.0 if alarms == 0 else float(chi2.ppf(0.05, 2 * alarms)) / (2 * hours)
+    return [lo, float(chi2.ppf(0.95, 2 * alarms + 2)) / (2 * hours)]
+
+
 def rate_line(alarms: int, hours: float) -> str:
     """``alarms / hours`` with its one-sided 95 % Poisson bounds."""
     if hours <= 0:
         return "nothing tested (the recordings are shorter than the reference window)"
-    lo = 0.0 if alarms == 0 else float(chi2.ppf(0.05, 2 * alarms)) / (2 * hours)
-    hi = float(chi2.ppf(0.95, 2 * alarms + 2)) / (2 * hours)
+    lo, hi = rate_bounds(alarms, hours)
     return (f"{alarms:3d} in {hours:.2f} h tested: {alarms / hours:6.2f}/h (one-sided 95 %: "
             f"{lo:.2f} to {hi:.2f}/h)")
 
@@ -217,14 +227,23 @@ def main() -> int:
                     help="hours of white residual for --trial (seed 1)")
     ap.add_argument("--colour-s", type=float, nargs="+", default=[20.0, 120.0, 300.0],
                     help="--trial: lengths of the long-window AR whitening's window [s]")
+    ap.add_argument("--json", action="store_true",
+                    help="print the figures as one JSON document on stdout (the text on stderr)")
     a = ap.parse_args()
+    out = sys.stderr if a.json else sys.stdout
+
+    def say(*args: object) -> None:
+        print(*args, file=out)
+
+    figures: dict[str, object] = {"seeds": a.seeds, "seconds_each": a.seconds, "outputs": {},
+                                  "false_alarms": []}
     with ProcessPoolExecutor(2) as pool:
         recs = list(pool.map(record, a.seeds, [a.seconds] * len(a.seeds)))
     setup = detector_config({})
     assert setup is not None
     cfg = setup.config
     L = cfg.learn_samples
-    print(f"{len(recs)} clean plants (seeds {a.seeds}), {a.seconds:g} s each, 10-ms blocks, "
+    say(f"{len(recs)} clean plants (seeds {a.seeds}), {a.seconds:g} s each, 10-ms blocks, "
           f"{sum(r.shape[0] for r in recs) / cfg.sample_rate_hz / 3600:.2f} h in all")
     for j, name in enumerate(cfg.names):
         xs = [r[:, 1 + j] - r[:, 1 + j].mean() for r in recs]
@@ -233,9 +252,9 @@ def main() -> int:
             acf.append(float(np.mean([np.sum(x[lag:] * x[:-lag]) / np.sum(x * x) for x in xs])))
         ratios = [float(np.nanmean([lrv_ratio(x, b) for x in xs]))
                   for b in (10, 100, 1000, 2000, 5000)]
-        print(f"\n{name}: residual autocorrelation at 1/2/5/10/20/50/100/200 blocks: "
+        say(f"\n{name}: residual autocorrelation at 1/2/5/10/20/50/100/200 blocks: "
               + " ".join(f"{v:.3f}" for v in acf))
-        print(f"{name}: B var(means of B) / var at B = 10/100/1000/2000/5000 blocks: "
+        say(f"{name}: B var(means of B) / var at B = 10/100/1000/2000/5000 blocks: "
               + " ".join(f"{v:.2f}" for v in ratios))
         means, zs = [], []
         for r in recs:
@@ -247,11 +266,16 @@ def main() -> int:
                 means.append(float(z.mean()))
                 zs.append(z)
         wz = [pooled_lrv(zs, b) for b in (1, 100, 400, 2000)]
-        print(f"{name}: whitened out of sample ({len(means)} windows of {cfg.learn_s:g} s): sd of "
+        figures["outputs"][name] = {  # type: ignore[index]
+            "acf_1_10_50_200": [acf[0], acf[3], acf[5], acf[7]],
+            "lrv_ratio_10_100_1000_2000_5000": ratios,
+            "arma_window_mean_sd": float(np.std(means)), "design_window_mean_sd": L ** -0.5,
+            "arma_b_mean_square_1_100_400_2000": wz}
+        say(f"{name}: whitened out of sample ({len(means)} windows of {cfg.learn_s:g} s): sd of "
               f"the window means {np.std(means):.4f} against 1/sqrt(L) = {L ** -0.5:.4f}; "
               "B mean(means of B ^ 2) at B = 1/100/400/2000: " + " ".join(f"{v:.2f}" for v in wz))
     design = 3600.0 / cfg.false_alarm_period_s
-    print(f"\nfalse alarms of ChangeDetector (node defaults; design {design:.2f}/h):")
+    say(f"\nfalse alarms of ChangeDetector (node defaults; design {design:.2f}/h):")
     for learn_s in (cfg.learn_s, 60.0, 120.0, None):
         if learn_s is None:
             setting, label = cfg, f"colour_s {cfg.colour_s:g}"
@@ -269,12 +293,16 @@ def main() -> int:
             hours = tested[phase] / setting.sample_rate_hz / 3600
             what = ("" if learn_s is not None else
                     ", with the colour" if phase else ", before the colour")
-            print(f"  {label}{what}: " + rate_line(alarms[phase], hours))
+            say(f"  {label}{what}: " + rate_line(alarms[phase], hours))
+            figures["false_alarms"].append({  # type: ignore[attr-defined]
+                "detector": label + what, "alarms": alarms[phase], "hours": hours,
+                "per_hour_95": rate_bounds(alarms[phase], hours),
+                "design_per_hour": design})
     if a.trial:
         rate_hz = cfg.sample_rate_hz
         white = np.random.default_rng(1).standard_normal(
             (round(a.white_hours * 3600 * rate_hz), len(cfg.names)))
-        print(f"\ntrial design (long-run variance from {TRIAL_BATCHES} batch means, averaged "
+        say(f"\ntrial design (long-run variance from {TRIAL_BATCHES} batch means, averaged "
               "over its uncertainty) against the node's, vectorised:")
         for label, data in (("clean plants", recs), ("white residual", [white])):
             for trial in (False, True):
@@ -284,22 +312,24 @@ def main() -> int:
                 for x in data:
                     n_al, n_te, h, m = count_alarms(x[:, 1:] if x is not white else x, trial)
                     al, te, hs, iid = al + n_al, te + n_te, hs + h, iid + m
-                print(f"  {label:14s} {'trial' if trial else 'node '}: "
+                say(f"  {label:14s} {'trial' if trial else 'node '}: "
                       + rate_line(al, te / rate_hz / 3600)
                       + f"; h of {cfg.names[-1]} median {np.median(hs):.1f}; on i.i.d. "
                       f"increments its thresholds give one false alarm per "
                       f"{np.median(iid):.3g} h (median over windows)")
-        print("\ntrial whitening: AR(p) by AIC on a long window, scored on the next 20 s:")
+        say("\ntrial whitening: AR(p) by AIC on a long window, scored on the next 20 s:")
         test = round(20.0 * rate_hz)
         for secs in a.colour_s:
             for j, name in enumerate(cfg.names):
                 zs, orders = long_window_whitening(recs, j, round(secs * rate_hz), test)
                 if not zs:
-                    print(f"  {secs:5g} s {name}: the recordings are too short")
+                    say(f"  {secs:5g} s {name}: the recordings are too short")
                     continue
-                print(f"  {secs:5g} s {name:9s}: {len(zs)} windows, p median "
+                say(f"  {secs:5g} s {name:9s}: {len(zs)} windows, p median "
                       f"{int(np.median(orders))}; B mean(means of B ^ 2) at B = 1/100/400/2000: "
                       + " ".join(f"{pooled_lrv(zs, b):.2f}" for b in (1, 100, 400, 2000)))
+    if a.json:
+        print(json.dumps(figures, indent=1))
     return 0
 
 

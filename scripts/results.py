@@ -10,7 +10,8 @@ Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.j
 ``identify`` (``dvt-bench identify --json``),
 ``hours`` (``dvt-bench identify --hours 1 --json``), ``loop`` (``dvt-bench loop
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
-randomised clean plants of tests/test_false_effects.py), ``all``.
+randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
+false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -108,6 +109,15 @@ def false_effects() -> tuple[list[str], dict[str, Any]]:
              "rows": [{kk: v for kk, v in r.items() if kk != "factors"} for r in rows]})
 
 
+DETECTOR_ARGS = ["--seeds", *(str(s) for s in range(3100, 3108)), "--seconds", "1500", "--json"]
+"""``detector``: 8 clean plants of 25 min (the figures of docs/loop.md, "Limits")."""
+
+
+def detector() -> tuple[list[str], dict[str, Any]]:
+    cmd = ["python", "scripts/detector_residual.py", *DETECTOR_ARGS]
+    return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
+
+
 NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "emps": emps,
     "demo": demo,
@@ -117,6 +127,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "model": _bench("model", "--json"),
     "false_effects": false_effects,
     "compare": _bench("identify", "--compare", "ident-none-1=ident-none-val", "--json"),
+    "detector": detector,
 }
 
 
@@ -202,6 +213,22 @@ def _row_compare(f: dict[str, Any]) -> tuple[str, str]:
             f"{_n(peer.get('fit_seconds'), '.0f')} s")
 
 
+def _row_detector(f: dict[str, Any]) -> tuple[str, str]:
+    rows = {r.get("detector", ""): r for r in f.get("false_alarms") or []}
+    colour: dict[str, Any] = next((r for k, r in rows.items() if k.endswith("with the colour")),
+                                  {})
+    arma: dict[str, Any] = next((r for k, r in rows.items() if k == "colour_s 0, learn_s 20"), {})
+
+    def rate(r: dict[str, Any]) -> str:
+        b = r.get("per_hour_95") or [None, None]
+        return (f"{_n(r.get('alarms'))} in {_n(r.get('hours'), '.2f')} h (one-sided 95 % "
+                f"{_n(b[0], '.2f')} to {_n(b[1], '.2f')}/h)")
+    return ("the change detector's false alarms on the clean simulated plant (node path, "
+            f"{len(f.get('seeds') or [])} runs of {_n(f.get('seconds_each'), '.0f')} s)",
+            f"with the colour {rate(colour)}; each window's ARMA(1,1) {rate(arma)}; design "
+            f"{_n(colour.get('design_per_hour'), '.2f')}/h")
+
+
 def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
     ident = _get(f, "closed_loop", "identification") or {}
     acc = ident.get("accepted") if isinstance(ident, dict) else None
@@ -217,7 +244,7 @@ def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
 ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
     "emps": _row_emps, "identify": _row_identify, "hours": _row_hours, "loop": _row_loop,
     "model": _row_model, "false_effects": _row_false, "compare": _row_compare,
-    "demo": _row_demo}
+    "demo": _row_demo, "detector": _row_detector}
 
 
 def table() -> str:
