@@ -197,18 +197,12 @@ def long_window_whitening(recs: list[np.ndarray], j: int, colour: int, test: int
     return zs, orders
 
 
-def rate_bounds(alarms: int, hours: float) -> list[float]:
-    """One-sided 95 % Poisson bounds ``[lower, upper]`` of ``alarms / hours`` [1/h]."""
-    if hours <= 0:
-        return [0.0, math.inf]
-    lo = 0.0 if alarms == 0 else float(chi2.ppf(0.05, 2 * alarms)) / (2 * hours)
-    return [lo, float(chi2.ppf(0.95, 2 * alarms + 2)) / (2 * hours)]
-
-
 def rate_line(alarms: int, hours: float) -> str:
     """``alarms / hours`` with its one-sided 95 % Poisson bounds."""
     if hours <= 0:
         return "nothing tested (the recordings are shorter than the reference window)"
+    from dvt_model.detect_sim import rate_bounds
+
     lo, hi = rate_bounds(alarms, hours)
     return (f"{alarms:3d} in {hours:.2f} h tested: {alarms / hours:6.2f}/h (one-sided 95 %: "
             f"{lo:.2f} to {hi:.2f}/h)")
@@ -217,6 +211,7 @@ def rate_line(alarms: int, hours: float) -> str:
 def main() -> int:
     from dvt_model.config import detector_config
     from dvt_model.detect import ChangeDetector, reference_from_window
+    from dvt_model.detect_sim import rate_bounds
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[3100, 3101, 3102, 3103])
@@ -296,7 +291,7 @@ def main() -> int:
             say(f"  {label}{what}: " + rate_line(alarms[phase], hours))
             figures["false_alarms"].append({  # type: ignore[attr-defined]
                 "detector": label + what, "alarms": alarms[phase], "hours": hours,
-                "per_hour_95": rate_bounds(alarms[phase], hours),
+                "per_hour_95": list(rate_bounds(alarms[phase], hours)),
                 "design_per_hour": design})
     if a.trial:
         rate_hz = cfg.sample_rate_hz

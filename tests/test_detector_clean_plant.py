@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from scipy.stats import beta, chi2
+from scipy.stats import beta
 
 from dvt_driver.plant.core import PlantSim
 from dvt_driver.plant.hidden import parse_hidden
@@ -49,6 +49,7 @@ from dvt_driver.plant.offline import predicted_held_current
 from dvt_model.config import detector_config
 from dvt_model.contract import DETECTOR_PREFIX
 from dvt_model.detect import COLOUR_CHUNK_S, ChangeDetector
+from dvt_model.detect_sim import rate_bounds
 from dvt_model.params import load_parameters
 from dvt_model.predictor import ResidualBlocks
 
@@ -147,8 +148,7 @@ def test_false_alarm_rate_on_the_clean_simulated_plant_meets_the_design() -> Non
     setup = detector_config({})
     assert setup is not None
     design = 3600.0 / setup.config.false_alarm_period_s
-    lower = 0.0 if alarms == 0 else float(chi2.ppf(0.05, 2 * alarms)) / (2 * hours)
-    upper = float(chi2.ppf(0.95, 2 * alarms + 2)) / (2 * hours)
+    lower, upper = rate_bounds(alarms, hours)
     print(f"\nclean simulated plant, node path, the colour in use: {alarms} false alarms in "
           f"{hours * 60:.1f} min of testing ({RUNS} runs): {alarms / hours:.1f}/h (one-sided "
           f"95 %: {lower:.2f} to {upper:.2f}/h); design {design:.2f}/h; before the colour "

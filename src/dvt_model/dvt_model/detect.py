@@ -496,6 +496,19 @@ def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: fl
                      arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain)
 
 
+def warm_up(config: DetectorConfig) -> None:
+    """Learn one reference from noise, with and (when ``config`` has one) without a colour:
+    the first end of a reference window, and the colour's first fit minutes later, then cost
+    their milliseconds, not the imports (scipy.signal, scipy.linalg) and first calls that took
+    seconds on a loaded machine (the model node calls this at start-up)."""
+    window = np.random.default_rng(0).standard_normal(config.learn_samples)
+    reference_from_window(window, config)
+    if config.colour_s > 0:
+        lags = config.colour_order_max
+        colour = ar_by_aic(lagged_products(window, lags) / window.size, window.size, lags)
+        reference_from_window(window, config, colour)
+
+
 # -------------------------------------------------------------------------- the detector
 class ChangeDetector:
     """Sequential change detector on the residual vector (see the module docstring).
@@ -804,7 +817,9 @@ class ChangeDetector:
         self.references = refs
         if colour is not None:
             self._colour_rev = [np.ascontiguousarray(a[::-1]) for a in colour]
-            self._order = max(a.size for a in colour)
+            # history needed before testing; at least 1 so that a white output (order 0)
+            # still marks the colour as in use
+            self._order = max(1, *(a.size for a in colour))
             P = self._P
             for i in range(self.n):
                 tail = np.asarray(self._buf[i][-P:], dtype=float)
@@ -812,8 +827,6 @@ class ChangeDetector:
                 self._ring[i, P:] = tail
             self._w = 0
             self._hist = P
-            # a white output (order 0) still tests: make _order count as "AR mode"
-            self._order = max(self._order, 1) if P else 0
         for i, ref in enumerate(refs):
             self._level[i] = ref.level
             self._phi[i] = ref.phi

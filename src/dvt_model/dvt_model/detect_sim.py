@@ -32,6 +32,18 @@ class SimulationResult:
     alarm_samples: tuple[int, ...]
 
 
+def rate_bounds(count: int, exposure: float, conf: float = 0.95) -> tuple[float, float]:
+    """One-sided ``conf`` lower and upper bounds of a Poisson rate with ``count`` events in
+    ``exposure`` (chi-square / Garwood; lower 0 with no event, ``(0, inf)`` without exposure),
+    in events per unit of ``exposure``."""
+    from scipy.stats import chi2
+
+    if not exposure > 0:
+        return 0.0, math.inf
+    lower = 0.0 if count == 0 else float(chi2.ppf(1.0 - conf, 2 * count)) / (2 * exposure)
+    return lower, float(chi2.ppf(conf, 2 * count + 2)) / (2 * exposure)
+
+
 def ar1_noise(rng: np.random.Generator, n: int, outputs: int, phi: float,
               white: float = 0.0, zi: NDArray[np.float64] | None = None
               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -127,7 +127,6 @@ from std_srvs.srv import Trigger
 from dvt_model import rosutil
 from dvt_model.config import (
     UNSET,
-    DetectorSetup,
     ModelTransaction,
     build_predictor,
     detector_config,
@@ -152,13 +151,7 @@ from dvt_model.contract import (
     NodeParam,
     model_reset_detector_service,
 )
-from dvt_model.detect import (
-    Alarm,
-    ChangeDetector,
-    ar_by_aic,
-    lagged_products,
-    reference_from_window,
-)
+from dvt_model.detect import Alarm, ChangeDetector, warm_up
 from dvt_model.errors import DvtModelError
 from dvt_model.predictor import Predictor, ResidualBlocks
 from dvt_model.recording import cdr
@@ -172,21 +165,6 @@ ALARM_HOLD_S = 10.0
 """The periodic detector status stays WARN this long after an alarm [s, node clock]."""
 DETECTOR_STATUS = f"{MODEL_NODE}: change detector"
 """Name of the detector's ``DiagnosticStatus``."""
-
-
-def _warm_up(setup: DetectorSetup) -> None:
-    """Learn one reference from noise at start-up: the first end of a reference window then
-    costs its ~2 ms, not the imports (scipy.signal) and first calls that took seconds on a
-    loaded machine and would stall the 1 kHz stream; so does the colour's first fit
-    (scipy.linalg), minutes later."""
-    rng = np.random.default_rng(0)
-    cfg = setup.config
-    window = rng.standard_normal(cfg.learn_samples)
-    reference_from_window(window, cfg)
-    if cfg.colour_s > 0:
-        lags = cfg.colour_order_max
-        colour = ar_by_aic(lagged_products(window, lags) / window.size, window.size, lags)
-        reference_from_window(window, cfg, colour)
 
 
 def _descriptor(spec: NodeParam) -> ParameterDescriptor:
@@ -382,7 +360,7 @@ class ModelNode(Node):
         if setup is not None:
             self.settle_s = setup.settle_s
             self.detector = ChangeDetector(setup.config)
-            _warm_up(setup)
+            warm_up(setup.config)
             self.blocks = ResidualBlocks(setup.block, len(SPEED_NAMES),
                                          setup.config.max_gap_s)
         self.detector_resets = 0  # resets by accepted model changes (push, rollback)

@@ -224,15 +224,8 @@ def test_false_alarm_rate_with_the_colour_meets_the_design() -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from scipy.stats import chi2
-
     from dvt_model.config import detector_config
-
-    def lower(n: int, t: float) -> float:
-        return 0.0 if n == 0 else float(chi2.ppf(0.05, 2 * n)) / (2 * t)
-
-    def upper(n: int, t: float) -> float:
-        return float(chi2.ppf(0.95, 2 * n + 2)) / (2 * t)
+    from dvt_model.detect_sim import rate_bounds
 
     setup = detector_config({})
     assert setup is not None
@@ -249,7 +242,7 @@ def test_false_alarm_rate_with_the_colour_meets_the_design() -> None:
         runs = [o for job, o in zip(jobs, out, strict=True) if job[0] == i]
         alarms, hours = sum(r[0] for r in runs), sum(r[1] for r in runs)
         before, before_h = sum(r[2] for r in runs), sum(r[3] for r in runs)
-        lo, hi = lower(alarms, hours), upper(alarms, hours)
+        lo, hi = rate_bounds(alarms, hours)
         print(f"\n{label:38s} with the colour: {alarms:3d} in {hours:5.1f} h, "
               f"{alarms / hours:.3f}/h (one-sided 95 % {lo:.3f} / {hi:.3f}); before it "
               f"(ARMA(1, 1)): {before} in {before_h:.2f} h")

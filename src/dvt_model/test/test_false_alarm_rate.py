@@ -39,7 +39,7 @@ from scipy.stats import chi2
 
 from dvt_model.config import detector_config
 from dvt_model.detect import DetectorConfig
-from dvt_model.detect_sim import simulate_clean
+from dvt_model.detect_sim import rate_bounds, simulate_clean
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -67,13 +67,13 @@ def poisson_interval(count: int, exposure: float, conf: float = 0.95) -> tuple[f
 
 
 def poisson_upper(count: int, exposure: float, conf: float = 0.95) -> float:
-    """One-sided ``conf`` upper bound of a Poisson rate."""
-    return float(chi2.ppf(conf, 2 * count + 2)) / (2 * exposure)
+    """One-sided ``conf`` upper bound of a Poisson rate (:func:`rate_bounds`)."""
+    return rate_bounds(count, exposure, conf)[1]
 
 
 def poisson_lower(count: int, exposure: float, conf: float = 0.95) -> float:
     """One-sided ``conf`` lower bound of a Poisson rate (0 with no event)."""
-    return 0.0 if count == 0 else float(chi2.ppf(1.0 - conf, 2 * count)) / (2 * exposure)
+    return rate_bounds(count, exposure, conf)[0]
 
 
 def _run(job: tuple[DetectorConfig, float, float, float, int]) -> tuple[int, float]:
