@@ -18,8 +18,9 @@ each, two recordings at a time, and prints, per output over all recordings:
   right; at ``B = L`` the window means' own);
 * the false alarms of :class:`~dvt_model.detect.ChangeDetector` with the node's defaults but
   no colour (``colour_s`` 0: each window's ARMA(1, 1)) and ``learn_s`` 20, 60 and 120 s, and
-  with the node's defaults (before the colour and with it), with the one-sided 95 % Poisson
-  bounds, against the design;
+  with the node's defaults (before the colour, with a colour fitted on less than
+  ``colour_s`` of history while it grows, and with the full one), with the one-sided 95 %
+  Poisson bounds, against the design;
 * a design tried and not kept (``--trial``): ``h`` for whitened increments of long-run
   variance ``lam`` (``k`` and ``h`` act divided by ``sqrt(lam)``), ``lam`` from
   :data:`TRIAL_BATCHES` batch means of the whitened reference window (at least 1) and the rate
@@ -277,17 +278,20 @@ def main() -> int:
         else:
             setting = dataclasses.replace(cfg, learn_s=learn_s, colour_s=0.0)
             label = f"colour_s 0, learn_s {learn_s:g}"
-        alarms, tested = [0, 0], [0, 0]  # before the colour, with it
+        # before the colour, with a colour on less than colour_s of history, with the full one
+        alarms, tested = [0, 0, 0], [0, 0, 0]
         for r in recs:
             det = ChangeDetector(setting)
             for row in r.tolist():
-                phase, before = int(det.colour_in_use), det.counters.tested
+                phase = int(det.colour_in_use) + int(det.colour_complete)
+                before = det.counters.tested
                 alarms[phase] += det.update(row[0], row[1:]) is not None
                 tested[phase] += det.counters.tested - before
-        for phase in (0, 1) if learn_s is None else (0,):
+        for phase in (0, 1, 2) if learn_s is None else (0,):
             hours = tested[phase] / setting.sample_rate_hz / 3600
             what = ("" if learn_s is not None else
-                    ", with the colour" if phase else ", before the colour")
+                    (", before the colour", ", with the colour on a shorter history",
+                     ", with the colour")[phase])
             say(f"  {label}{what}: " + rate_line(alarms[phase], hours))
             figures["false_alarms"].append({  # type: ignore[attr-defined]
                 "detector": label + what, "alarms": alarms[phase], "hours": hours,

@@ -56,7 +56,7 @@ from dvt_model.predictor import ResidualBlocks
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 RUNS = 8
-TEST_S = 300.0  # tested time per run with the colour in use [s]
+TEST_S = 300.0  # tested time per run with the full colour in use [s]
 LEAD_S = 2.0  # the model node starts this long after the motor [s] (as the topic-level test)
 CURRENT_A = 4.0
 SEED = 3100  # first plant seed; fixed before the first run
@@ -73,12 +73,13 @@ def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: flo
               colour: bool = False) -> tuple[list[dict[str, Any]], float, float | None, float]:
     """One clean plant through the node's path, tested ``test_s`` after the first reference
     window (``learn_s``: ``None`` the node's default); with ``colour`` ``test_s`` after the
-    first reference window that uses the long-window whitening (``detector.colour_s``); with
+    first reference window that uses the long-window whitening fitted on its full history
+    (``detector.colour_s``); with
     ``step_after_s`` the plant's Coulomb friction steps to ``STEP`` that long after the testing
     began (the run then ends ``test_s`` after the step, or at the first alarm after it).
-    Returns the alarms (dicts, each with ``"colour"``: whether the colour was in use), the tested
-    seconds (with ``colour``: with the colour in use), the plant time of the step (``None``
-    without one) and the tested seconds before the colour."""
+    Returns the alarms (dicts, each with ``"colour"``: whether the full colour was in use),
+    the tested seconds (with ``colour``: with the full colour in use), the plant time of the
+    step (``None`` without one) and the tested seconds before the full colour."""
     params = load_parameters("physical")
     setup = detector_config({} if learn_s is None else {f"{DETECTOR_PREFIX}.learn_s": learn_s})
     assert setup is not None
@@ -94,7 +95,7 @@ def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: flo
         end += cfg.colour_s + COLOUR_CHUNK_S + cfg.learn_s
     settle_until = float("inf")
     alarms: list[dict[str, Any]] = []
-    tested = [0, 0]  # samples tested before the colour, with it
+    tested = [0, 0]  # samples tested before the full colour, with it
     sim = PlantSim(params, hidden, seed=seed)
     for t, p in predicted_held_current(sim, params, CURRENT_A, end, LEAD_S):
         if p.anchored:
@@ -105,7 +106,7 @@ def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: flo
             continue
         block = blocks.add(t, p.residual.tolist())
         if block is not None:
-            phase = int(det.colour_in_use)
+            phase = int(det.colour_complete)
             before = det.counters.tested
             alarm = det.update(block[0], block[1])
             tested[phase] += det.counters.tested - before
@@ -123,8 +124,8 @@ def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: flo
 
 def clean_run(seed: int) -> tuple[list[tuple[float, str, bool]], float, float]:
     """:func:`node_path` of a clean plant with the node's defaults, tested ``TEST_S`` with the
-    colour in use: ([(stamp, output, with the colour)], tested seconds with the colour, before
-    it)."""
+    full colour in use: ([(stamp, output, with the full colour)], tested seconds with it,
+    before it)."""
     alarms, tested, _, before = node_path(seed, None, TEST_S, colour=True)
     return [(a["stamp_s"], a["name"], a["colour"]) for a in alarms], tested, before
 
@@ -151,12 +152,13 @@ def test_false_alarm_rate_on_the_clean_simulated_plant_meets_the_design() -> Non
     lower, upper = rate_bounds(alarms, hours)
     print(f"\nclean simulated plant, node path, the colour in use: {alarms} false alarms in "
           f"{hours * 60:.1f} min of testing ({RUNS} runs): {alarms / hours:.1f}/h (one-sided "
-          f"95 %: {lower:.2f} to {upper:.2f}/h); design {design:.2f}/h; before the colour "
-          f"(ARMA(1, 1) per window): {early} in {early_h * 60:.1f} min")
+          f"95 %: {lower:.2f} to {upper:.2f}/h); design {design:.2f}/h; before the full "
+          f"colour (ARMA(1, 1) per window, then a colour on a shorter history): {early} in "
+          f"{early_h * 60:.1f} min")
     for seed, (where, tested, _) in zip(range(SEED, SEED + RUNS), out, strict=True):
         if where:
-            print(f"  seed {seed} ({tested:.0f} s with the colour): " + ", ".join(
-                f"{name} at {stamp:.2f} s{'' if c else ' (before the colour)'}"
+            print(f"  seed {seed} ({tested:.0f} s with the full colour): " + ", ".join(
+                f"{name} at {stamp:.2f} s{'' if c else ' (before the full colour)'}"
                 for stamp, name, c in where))
     assert lower <= design, (alarms, hours)
 

@@ -45,16 +45,19 @@ keeps a slow wander and the CUSUM raises false alarms far above its design (docs
 "Colour"). So the detector also learns the residual's colour on a long history,
 ``colour_s`` (300 s) of residual pooled in chunks of :data:`COLOUR_CHUNK_S`, each centred on its
 own mean (:func:`lagged_products`): an AR(p) by Yule-Walker with ``p`` by AIC up to
-:attr:`DetectorConfig.colour_order_max` (:func:`ar_by_aic`), refitted on the newest ``colour_s``
-whenever a chunk completes. From its first fit on (a new reference window starts then) every
-reference window learns only the level and the innovation scale (standard deviation of
-``a_t = c_t - sum_j a_j c_(t-j)``), and each sample is whitened by that AR; ``k``, ``h`` as
-above with the step gain ``1 - sum_j a_j``. The colour is kept across alarms and
-:meth:`~ChangeDetector.reset`; an alarm removes the history from its estimated change time on,
-a reset the chunk in progress, a gap or a non-finite sample ends a chunk (one shorter than
-``10 x`` the longest lag is dropped). Before the first fit (the first ``colour_s`` after a
-start) the detector runs with each window's ARMA(1, 1), and its false-alarm rate there is
-that design's on the residual at hand.
+:attr:`DetectorConfig.colour_order_max` (:func:`ar_by_aic`), fitted when the first chunk
+completes and refitted on the newest ``colour_s`` (at most) whenever another one does. From its
+first fit on (a new reference window starts then) every reference window learns only the level
+and the innovation scale (standard deviation of ``a_t = c_t - sum_j a_j c_(t-j)``), and each
+sample is whitened by the newest AR when the window ends; ``k``, ``h`` as above with the step
+gain ``1 - sum_j a_j``. While the history grows the colour is fitted on less than ``colour_s``
+(:attr:`ChangeDetector.colour_in_use_s`); its first fit on the full ``colour_s`` starts a new
+reference window once more (:attr:`ChangeDetector.colour_complete`: the design holds from
+there). The colour is kept across alarms and :meth:`~ChangeDetector.reset`; an alarm removes
+the history from its estimated change time on, a reset the chunk in progress, a gap or a
+non-finite sample ends a chunk (one shorter than ``10 x`` the longest lag is dropped). Before
+the first fit (the first chunk after a start) the detector runs with each window's
+ARMA(1, 1), and its false-alarm rate there is that design's on the residual at hand.
 
 On an alarm the detector returns an :class:`Alarm` (detection stamp, the estimated change time =
 the stamp of the first sample after the CUSUM's last zero, output, direction, estimated shift),
@@ -553,6 +556,8 @@ class ChangeDetector:
         self._chunk_end = -math.inf
         self._pool: deque[tuple[float, int, NDArray[np.float64]]] = deque()
         self._colour: list[NDArray[np.float64]] | None = None
+        self._colour_fit_n = 0  # samples the latest colour was fitted on
+        self._colour_used_n = 0  # ... and the colour the reference in use whitens by
         self._colour_rev: list[NDArray[np.float64]] = []
         self._order = 0
         self._ring = np.zeros((self.n, 2 * max(self._P, 1)))
@@ -573,20 +578,36 @@ class ChangeDetector:
 
     @property
     def colour_progress(self) -> float:
-        """Fraction of the long-window whitening's history collected [0..1] (1 once fitted;
-        0 without one)."""
+        """Fraction of the long-window whitening's full history (``colour_s``) collected
+        [0..1] (1 once the colour has been fitted on all of it; 0 without one)."""
         if self._P == 0:
             return 0.0
-        if self._colour is not None:
+        if self._colour_full:
             return 1.0
         pooled = sum(m for _, m, _ in self._pool) + len(self._chunk[0])
         return min(1.0, pooled / self.config.colour_samples)
 
     @property
     def colour_in_use(self) -> bool:
-        """Whether the samples tested now are whitened by the long-window colour (from the end
-        of the first reference window after its first fit on)."""
+        """Whether the samples tested now are whitened by a long-window colour (from the end
+        of the first reference window after its first fit on, one chunk into the history)."""
         return self._order > 0
+
+    @property
+    def colour_in_use_s(self) -> float:
+        """Residual history [s] the colour the samples are whitened by was fitted on (0
+        before the first fit): below ``colour_s`` while the history grows."""
+        return self._colour_used_n / self.config.sample_rate_hz if self._order else 0.0
+
+    @property
+    def colour_complete(self) -> bool:
+        """Whether the samples tested now are whitened by a colour fitted on the full
+        ``colour_s`` of history (the detector's design holds from here on)."""
+        return self._order > 0 and self._colour_used_n >= self.config.colour_samples
+
+    @property
+    def _colour_full(self) -> bool:
+        return self._colour is not None and self._colour_fit_n >= self.config.colour_samples
 
     @property
     def colour_history_s(self) -> float:
@@ -664,7 +685,7 @@ class ChangeDetector:
                 self._chunk[i].append(float(residual[i]))
             self._chunk_end = t
             if len(self._chunk[0]) >= self._chunk_len and self._end_chunk():
-                return None  # the first colour: a new reference window starts now
+                return None  # a first or a full colour: a new reference window starts now
         if self._filled < self._L:
             j = self._filled
             if j == 0:
@@ -770,9 +791,10 @@ class ChangeDetector:
         self.reset()
 
     def _end_chunk(self) -> bool:
-        """Pool the chunk in progress (if long enough) and refit the colour once enough is
-        pooled. Returns whether this was the colour's first fit (a new reference window then
-        starts: the present one was whitened otherwise)."""
+        """Pool the chunk in progress (if long enough) and refit the colour once a whole
+        chunk is pooled, on the newest ``colour_s`` at most. Returns whether a new reference
+        window starts: at the colour's first fit (the present window was whitened otherwise)
+        and at its first fit on the full ``colour_s`` while a shorter one is in use."""
         m = len(self._chunk[0])
         if m < _COLOUR_LAGS_PER_ORDER * self._P:
             for ch in self._chunk:
@@ -787,15 +809,20 @@ class ChangeDetector:
         total = sum(mm for _, mm, _ in self._pool)
         while self._pool and total - self._pool[0][1] >= need:
             total -= self._pool.popleft()[1]
-        if total < need:
+        if total < min(need, self._chunk_len):
             return False
         acov = np.sum([pp for _, _, pp in self._pool], axis=0) / total
         first = self._colour is None
         self._colour = [ar_by_aic(acov[i], total, P) for i in range(self.n)]
+        self._colour_fit_n = total
         self.counters.colour_fits += 1
-        if first:
+        # a colour on the full history replaces a shorter one in a reference being tested
+        # (one being learned takes the newest colour when it ends)
+        grown = (total >= need and not self.learning and self._order > 0
+                 and self._colour_used_n < need)
+        if first or grown:
             self._relearn()
-        return first
+        return first or grown
 
     def _alarm(self, i: int, t: float, up: bool) -> Alarm:
         ref = self.references[i]
@@ -816,6 +843,7 @@ class ChangeDetector:
                 for i in range(self.n)]
         self.references = refs
         if colour is not None:
+            self._colour_used_n = self._colour_fit_n
             self._colour_rev = [np.ascontiguousarray(a[::-1]) for a in colour]
             # history needed before testing; at least 1 so that a white output (order 0)
             # still marks the colour as in use

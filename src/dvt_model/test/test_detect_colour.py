@@ -80,23 +80,30 @@ def test_the_longest_lag_is_at_most_half_a_reference_window() -> None:
     assert DetectorConfig(sample_rate_hz=RATE, colour_lag_s=0.001).colour_order_max == 1
 
 
-def test_colour_is_learned_after_colour_s_and_then_whitens() -> None:
+def test_colour_is_learned_on_the_first_chunk_and_grows_to_colour_s() -> None:
     cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=120.0,
                          colour_lag_s=1.0).validated()
     det = ChangeDetector(cfg)
     x = 0.01 * ar2(np.random.default_rng(4), round(200 * RATE))
-    first_fit = None
+    relearned = []  # samples at which a new reference window started
+    used = []  # (sample, colour_in_use_s, colour_complete) at the end of each reference window
     for j, row in enumerate(x.tolist()):
+        testing = not det.learning
         det.update(j / RATE, row)
-        if first_fit is None and det.counters.colour_fits:
-            first_fit = j
-            # a new reference window starts: the one in use was whitened otherwise
-            assert det.learning and det.colour_progress == 1.0
-        if first_fit is None:
-            assert det.references == [] or all(r.order == 0 for r in det.references)
-    # the colour comes with the chunk that completes colour_s of history (60-s chunks)
-    assert first_fit == round(120 * RATE) - 1
-    assert det.counters.colour_fits == 2  # and is refitted on every later chunk (at 180 s)
+        if testing and det.learning:
+            relearned.append(j)
+        if not testing and not det.learning:
+            used.append((j, det.colour_in_use_s, det.colour_complete))
+        if j < round(60 * RATE) - 1:
+            assert not det.colour_in_use and det.counters.colour_fits == 0
+            assert det.colour_progress == pytest.approx(j / (120 * RATE), abs=0.01)
+    # the first colour with the first 60-s chunk, the full one (colour_s) with the second:
+    # each starts a new reference window; the third chunk (180 s) refits it, no new window
+    assert relearned == [round(60 * RATE) - 1, round(120 * RATE) - 1], relearned
+    assert [(j, round(s), full) for j, s, full in used] == [
+        (round(20 * RATE) - 1, 0, False), (round(80 * RATE) - 1, 60, False),
+        (round(140 * RATE) - 1, 120, True)], used
+    assert det.counters.colour_fits == 3 and det.colour_progress == 1.0
     assert det.colour_history_s == pytest.approx(120.0)  # the newest colour_s only
     orders = [r.order for r in det.references]
     assert all(o >= 2 for o in orders), orders
@@ -111,7 +118,8 @@ def test_reset_keeps_the_colour_and_an_alarm_drops_the_history_since_the_change(
     det = ChangeDetector(cfg)
     rng = np.random.default_rng(5)
     x = 0.01 * ar2(rng, round(300 * RATE))
-    # chunks end at 60 and 120 s (the colour), the reset at 130 s drops the one in progress,
+    # chunks end at 60 s (the first colour) and 120 s (the full one), the reset at 130 s
+    # drops the one in progress,
     # the next end at 190 and 250 s; a step of 1.5 residual sigmas on carrier 3 at 249.5 s
     sigma = 0.01 * math.sqrt((1 - AR2[1]) / ((1 + AR2[1]) * ((1 - AR2[1]) ** 2 - AR2[0] ** 2)))
     x[round(249.5 * RATE):, 1] += 1.5 * sigma
@@ -126,7 +134,7 @@ def test_reset_keeps_the_colour_and_an_alarm_drops_the_history_since_the_change(
             break
         if j == round(130 * RATE):
             det.reset()  # a model change: the colour stays
-            assert det.counters.colour_fits == 1 and det.learning
+            assert det.counters.colour_fits == 2 and det.learning
     assert alarm is not None and alarm.name == "carrier3" and alarm.direction == 1
     assert 248.5 <= alarm.change_s <= 250.0 < alarm.stamp_s
     # the chunk that ended at 250 s held the change: the alarm took it out again
@@ -202,7 +210,7 @@ def colour_run(job: tuple[int, int, float, float]) -> tuple[int, float, int, flo
     j = 0
     while counts[phase_under_test][1] < hours * HOUR:
         for row in _residual(rng, parts, white, HOUR // 10, state).tolist():
-            phase = int(det.colour_in_use)
+            phase = int(det.colour_complete)
             tested = det.counters.tested
             alarm = det.update(j / RATE, row)
             counts[phase][1] += det.counters.tested - tested
