@@ -774,7 +774,8 @@ MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
     NodeParam(f"{DETECTOR_PREFIX}.colour_s", "double", "s",
               "residual history the detector learns the residual's colour from (an AR "
               "whitening by AIC, kept across alarms and model changes, refitted every minute); "
-              "until it has that much it whitens each reference window by its own ARMA(1, 1); "
+              "in the first minute it whitens each reference window by its own ARMA(1, 1), "
+              "then by a colour on the history it has, fully from colour_s on; "
               "0 = never; read-only", 300.0, lo=0.0, hi=86400.0),
     NodeParam(f"{DETECTOR_PREFIX}.colour_lag_s", "double", "s",
               "longest lag of that whitening (at most half of learn_s is used); read-only", 3.0,

@@ -192,7 +192,7 @@ def colour_run(job: tuple[int, int, float, float]) -> tuple[int, float, int, flo
     """One half (``half`` 0 or 1: independent seeds) of a colour of :data:`COLOURS` through
     :class:`ChangeDetector` with the model node's settings and ``colour_s`` (0: the ARMA(1, 1)
     of each window only) until ``hours`` are tested in the phase under test: (alarms, tested
-    hours) while the colour is in use, and the same before it."""
+    hours) while the colour fitted on the full ``colour_s`` is in use, and the same before it."""
     from dataclasses import replace
 
     from dvt_model.config import detector_config
@@ -253,7 +253,7 @@ def test_false_alarm_rate_with_the_colour_meets_the_design() -> None:
         lo, hi = rate_bounds(alarms, hours)
         print(f"\n{label:38s} with the colour: {alarms:3d} in {hours:5.1f} h, "
               f"{alarms / hours:.3f}/h (one-sided 95 % {lo:.3f} / {hi:.3f}); before it "
-              f"(ARMA(1, 1)): {before} in {before_h:.2f} h")
+              f"(ARMA(1, 1), then a colour on less history): {before} in {before_h:.2f} h")
         if lo > design or hi > 1.0:
             failures.append(f"{label}: {alarms} false alarms in {hours:.1f} h ({lo:.3f} to "
                             f"{hi:.3f}/h) against the design {design:.3f}/h")
