@@ -101,14 +101,17 @@ def main() -> int:
 
 
 def _show(title: str, fit: OEFit, truth: dict[str, float], fmt: str = ".4g",
-          unit: str | None = None) -> None:
+          unit: str | None = None, relative: bool = False) -> None:
     """Each parameter of ``truth``: the plant's value, the fit's with its reported std and the
-    offset in std (values in format ``fmt``; with ``unit``, the offset in that unit too)."""
+    offset in std (values in format ``fmt``; with ``unit``, the offset in that unit too; with
+    ``relative``, in per cent of the plant's value)."""
     p, sd = fit.parameters(), fit.parameter_std()
     print(title)
     for name, t in truth.items():
         off = (p[name] - t) / sd[name] if sd[name] > 0 else float("inf")
         also = "" if unit is None else f", {p[name] - t:+{fmt}} {unit}"
+        if relative and t != 0:
+            also += f", {100 * (p[name] / t - 1):+.3f} %"
         print(f"  {name:28s} plant {t:{fmt}}  fit {p[name]:{fmt}} +- {sd[name]:.2g}"
               f"  ({off:+.1f} std{also})", flush=True)
 

@@ -14,13 +14,15 @@ the seeds. ``--noise-free`` records without the tachometer's and the currents' n
 and A/D quantisation stay). ``--own-model`` then refits each fit on the identifier's own model
 at the plant's ``a`` and ``b`` (the other parameters as fitted, Gaussian noise of the fit's
 residual size per output, seed 5): an estimator that finds its own model's values there puts
-the offset on the difference between the plant and the model. About 15 s per fit at the
-default step, 1 min at ``--fit-decimate 1``.
+the offset on the difference between the plant and the model. ``--structure`` also prints the
+structure's masses and dampings against the plant's (``physical`` with the arm's reflected
+inertia ``J_arm / N^2`` added to ``M22``): is the offset the arm's alone? About 15 s per fit at
+the default step, 1 min at ``--fit-decimate 1``.
 
 Usage::
 
     .venv/bin/python scripts/gravity_bias.py [--seeds 0 1 2] [--fit-decimate 0 1]
-        [--draw SEED] [--noise-free] [--own-model]
+        [--draw SEED] [--noise-free] [--own-model] [--structure]
 """
 
 from __future__ import annotations
@@ -56,6 +58,8 @@ def main() -> int:
                     help="record with the tachometer, motor- and brake-current noise at 0")
     ap.add_argument("--own-model", action="store_true",
                     help="also refit on the identifier's own model at the plant's a and b")
+    ap.add_argument("--structure", action="store_true",
+                    help="also print M and D against the plant's")
     a = ap.parse_args()
     hidden = load_hidden("gravity_arm", draw=a.draw)
     arm = hidden.gravity_arm
@@ -65,6 +69,7 @@ def main() -> int:
     n = arm.stage.reduction
     truth = {A: arm.carrier3_torque(0.0, 1.0), B: arm.carrier3_torque(0.5 * math.pi * n, 1.0)}
     params = load_parameters("physical")
+    structure = structure_truth(arm.reflected_inertia)
     sensors = (dataclasses.replace(SensorConfig(), tach_noise=0.0, motor_current_noise=0.0,
                                    brake_current_noise=0.0) if a.noise_free else None)
     tmp = Path(tempfile.mkdtemp(prefix="dvt-gravity-bias-"))
@@ -85,6 +90,9 @@ def main() -> int:
             offsets[q].append((p[A] - truth[A], p[B] - truth[B]))
             _show(f"seed {s}, fit step {r.fit_dt * 1e3:g} ms, validation fit "
                   f"{r.baseline.val.mean_fit:.3f} %", fit, truth, ".6f", "N m")
+            if a.structure:
+                _show("  the structure (offset relative to the plant's)", fit, structure,
+                      ".6g", relative=True)
             if a.own_model:
                 _show("  the same fit on the identifier's own model at the plant's a, b",
                       _refit_on_own_model(fit, truth), truth, ".6f", "N m")
@@ -93,6 +101,22 @@ def main() -> int:
         print(f"fit_decimate {q or 'auto'}: mean offset over {len(rows)} seeds "
               f"a {m[0]:+.6f}, b {m[1]:+.6f} N m")
     return 0
+
+
+def structure_truth(arm_inertia: float) -> dict[str, float]:
+    """The plant's masses and dampings as the ``dvt`` structure names them: the ``physical``
+    parameters' rigid ``M`` (with ``arm_inertia`` [kg m^2] added to ``M22``) and ``D``."""
+    from dvt_model.config import resolve
+
+    rigid = resolve({"params": "physical"}).rigid
+    M = np.array(rigid.M, dtype=float)
+    M[1, 1] += arm_inertia
+    D = np.asarray(rigid.D, dtype=float)
+    out = {}
+    for name, mat in (("M", M), ("D", D)):
+        for i, j in ((0, 0), (0, 1), (1, 1)):
+            out[f"{name}{i + 1}{j + 1}"] = float(mat[i, j])
+    return out
 
 
 def with_declared_arm(text: str, reduction: float, where: Path) -> Path:

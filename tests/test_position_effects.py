@@ -151,7 +151,9 @@ def test_gravity_arm_is_the_only_accepted_effect(
     "2.3-4.0 of a smaller std); the estimator finds its own model's values (--own-model, "
     "within 1.7 std). Neither the plant's sub-step (0.1 ms) nor a one-sample shift of the "
     "angle removed it (scratch runs). Which term of the plant the model lacks is not found "
-    "(2026-11-29)"))
+    "(2026-11-29); the masses and dampings carry offsets of the same size (--structure: "
+    "noise-free +0.07 to +0.25 %, 3-7 std; with the sensor noise -0.36 to +0.03 %, up to "
+    "4.4 std on one of three recordings), so it is not the arm's term alone (2026-12-05)"))
 def test_gravity_arm_cos_coefficient_is_the_plants(
         runs: dict[str, tuple[Path, Path]], root: Path) -> None:
     """``a`` of ``a cos(theta_c3 / N) + b sin(theta_c3 / N)`` within 3 reported std of the
