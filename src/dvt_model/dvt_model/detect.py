@@ -582,7 +582,7 @@ class ChangeDetector:
         [0..1] (1 once the colour has been fitted on all of it; 0 without one)."""
         if self._P == 0:
             return 0.0
-        if self._colour_full:
+        if self._colour_fit_n >= self.config.colour_samples:  # the latest fit had it all
             return 1.0
         pooled = sum(m for _, m, _ in self._pool) + len(self._chunk[0])
         return min(1.0, pooled / self.config.colour_samples)
@@ -604,10 +604,6 @@ class ChangeDetector:
         """Whether the samples tested now are whitened by a colour fitted on the full
         ``colour_s`` of history (the detector's design holds from here on)."""
         return self._order > 0 and self._colour_used_n >= self.config.colour_samples
-
-    @property
-    def _colour_full(self) -> bool:
-        return self._colour is not None and self._colour_fit_n >= self.config.colour_samples
 
     @property
     def colour_history_s(self) -> float:
