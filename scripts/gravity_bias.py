@@ -19,10 +19,31 @@ structure's masses and dampings against the plant's (``physical`` with the arm's
 inertia ``J_arm / N^2`` added to ``M22``): is the offset the arm's alone? About 15 s per fit at
 the default step, 1 min at ``--fit-decimate 1``.
 
+Where the offset comes from (counterfactual runs; the plant and identifier are unchanged
+otherwise):
+
+- ``--ideal-current``: the plant reports as the motor current the mean current its drive
+  applies over the interval that follows the sample (what the torque integrates), noise-free,
+  and the description holds it as sampled (``hold: zoh``). The measured current is the
+  instantaneous value at the sample of a current that follows its reference with the drive's
+  first-order lag; the description's ``hold: linear`` holds the mean of the line through two
+  samples, where the lag's mean weights the later sample more (0.582 for a lag equal to the
+  period).
+- ``--ideal-speeds``: the plant reports both speeds as their true values at the sample (no
+  encoder count difference, tachometer noise or A/D quantisation), and the description reads
+  the sun speed as instantaneous (no ``sampling: interval``).
+- ``--hold-weight W``: the identifier's ``linear`` hold weights the interval's two samples
+  ``1 - W`` and ``W`` (the description's 0.5; the plant's drive 0.582, see above), with the
+  measured current: the share of the offset the hold's weight carries under noise.
+- ``--bandwidths``: the reported std of ``a`` again with the Bartlett window 4 and 16 times the
+  automatic one (:func:`dvt_identify.uncertainty.sandwich_covariance`): how much of the score's
+  correlation the automatic (AR(1) plug-in) window leaves out.
+
 Usage::
 
     .venv/bin/python scripts/gravity_bias.py [--seeds 0 1 2] [--fit-decimate 0 1]
         [--draw SEED] [--noise-free] [--own-model] [--structure]
+        [--ideal-current] [--ideal-speeds] [--hold-weight W] [--bandwidths]
 """
 
 from __future__ import annotations
@@ -37,13 +58,20 @@ from pathlib import Path
 import numpy as np
 from band_lags import _refit_on_own_model, _show
 
+from dvt_driver.plant import core
 from dvt_driver.plant.hidden import load_hidden
 from dvt_driver.plant.offline import record_offline
+from dvt_driver.plant.physics import lag_mean_factor
 from dvt_driver.plant.settings import SensorConfig
 from dvt_driver.run.experiment_core import build
+from dvt_identify import data as id_data
+from dvt_identify import simulation as id_simulation
+from dvt_identify.data import Segment
 from dvt_identify.description import load_description
+from dvt_identify.fit import OEFit
 from dvt_identify.loop import LoopConfig, identify
 from dvt_identify.pipeline import load_segments
+from dvt_identify.uncertainty import bartlett_bandwidth, sandwich_covariance, scores
 from dvt_model.params import load_parameters
 
 A, B = "gravity_a_carrier3", "gravity_b_carrier3"
@@ -60,7 +88,21 @@ def main() -> int:
                     help="also refit on the identifier's own model at the plant's a and b")
     ap.add_argument("--structure", action="store_true",
                     help="also print M and D against the plant's")
+    ap.add_argument("--ideal-current", action="store_true",
+                    help="the plant reports the interval's mean motor current (held as sampled)")
+    ap.add_argument("--ideal-speeds", action="store_true",
+                    help="the plant reports both true speeds at the sample")
+    ap.add_argument("--hold-weight", type=float, default=None,
+                    help="the linear hold's weight of the later sample (description: 0.5)")
+    ap.add_argument("--bandwidths", action="store_true",
+                    help="also the std of a with 4 and 16 times the automatic Bartlett window")
     a = ap.parse_args()
+    if a.hold_weight is not None and not 0.0 <= a.hold_weight <= 1.0:
+        ap.error(f"--hold-weight: expected a weight in [0, 1], got {a.hold_weight}")
+    if a.ideal_current or a.ideal_speeds:
+        ideal_sensors(a.ideal_current, a.ideal_speeds)
+    if a.hold_weight is not None:
+        weighted_hold(a.hold_weight)
     hidden = load_hidden("gravity_arm", draw=a.draw)
     arm = hidden.gravity_arm
     if arm is None:
@@ -73,7 +115,8 @@ def main() -> int:
     sensors = (dataclasses.replace(SensorConfig(), tach_noise=0.0, motor_current_noise=0.0,
                                    brake_current_noise=0.0) if a.noise_free else None)
     tmp = Path(tempfile.mkdtemp(prefix="dvt-gravity-bias-"))
-    desc = load_description(with_declared_arm(load_description("dvt").text, n, tmp))
+    text = ideal_description(load_description("dvt").text, a.ideal_current, a.ideal_speeds)
+    desc = load_description(with_declared_arm(text, n, tmp))
     print(f"plant draw {a.draw}: reduction {n:g}, a {truth[A]:.6f}, b {truth[B]:.6f} N m")
     offsets: dict[int, list[tuple[float, float]]] = {q: [] for q in a.fit_decimate}
     for s in a.seeds:
@@ -93,6 +136,8 @@ def main() -> int:
             if a.structure:
                 _show("  the structure (offset relative to the plant's)", fit, structure,
                       ".6g", relative=True)
+            if a.bandwidths:
+                show_bandwidths(fit, A)
             if a.own_model:
                 _show("  the same fit on the identifier's own model at the plant's a, b",
                       _refit_on_own_model(fit, truth), truth, ".6f", "N m")
@@ -101,6 +146,72 @@ def main() -> int:
         print(f"fit_decimate {q or 'auto'}: mean offset over {len(rows)} seeds "
               f"a {m[0]:+.6f}, b {m[1]:+.6f} N m")
     return 0
+
+
+def ideal_sensors(current: bool, speeds: bool) -> None:
+    """Make every plant of this process report the interval's mean motor current (``current``)
+    and the true speeds at the sample (``speeds``), noise-free (a counterfactual plant: the
+    controller and the physics are unchanged, only what the samples say)."""
+    measure = core.PlantSim._measure
+
+    def ideal(self: core.PlantSim, clamped: bool) -> core.SampleValues:
+        v = measure(self, clamped)
+        if current:  # the mean the next sub-step applies (one sub-step per sample at 1 kHz)
+            tau, i0, ref = self.drive.current_time_constant, self.physics.i_motor, self._i_ref
+            v = dataclasses.replace(v, motor_current=(
+                ref + (i0 - ref) * lag_mean_factor(self.step, tau) if tau else ref))
+        if speeds:
+            v = dataclasses.replace(v, sun_speed=float(self.state.omega[0]),
+                                    carrier3_speed=float(self.physics.output_speed()))
+        return v
+
+    if current and core.PlantSim(load_parameters("physical")).substeps != 1:
+        raise SystemExit("gravity_bias: --ideal-current needs one physics sub-step per sample")
+    core.PlantSim._measure = ideal  # type: ignore[method-assign]
+
+
+def ideal_description(text: str, current: bool, speeds: bool) -> str:
+    """The ``dvt`` description ``text`` with the motor current held as sampled (``current``)
+    and the sun speed read as instantaneous (``speeds``)."""
+    for on, key in ((current, ", hold: linear}"), (speeds, ",\n     sampling: interval}")):
+        if on:
+            if text.count(key) != 1:
+                raise SystemExit("gravity_bias: the dvt description's motor or sun line changed")
+            text = text.replace(key, "}")
+    return text
+
+
+def weighted_hold(weight: float) -> None:
+    """Make the identifier's ``linear`` hold weight an interval's samples ``1 - weight`` and
+    ``weight`` (:func:`dvt_identify.data.held_inputs` holds 0.5 and 0.5)."""
+
+    def held(seg: Segment) -> np.ndarray:
+        hold = seg.input_hold
+        if hold is None or "linear" not in hold or seg.n < 2:
+            return seg.u
+        lin = [j for j, h in enumerate(hold) if h == "linear"]
+        u = seg.u.copy()
+        u[:-1, lin] = (1.0 - weight) * seg.u[:-1, lin] + weight * seg.u[1:, lin]
+        return u
+
+    id_data.held_inputs = held
+    id_simulation.held_inputs = held
+
+
+def show_bandwidths(fit: OEFit, name: str) -> None:
+    """The std of parameter ``name`` with 1, 4 and 16 times the automatic Bartlett window."""
+    if fit.jac_ is None:
+        print("  (the fit did not keep its Jacobian: no bandwidth figures)")
+        return
+    free = [n for n, f in zip(fit.model.names, fit.model.free, strict=True) if f]
+    i = free.index(name)
+    sizes = [sg.n for sg in fit.segments_]
+    ny = fit.segments_[0].y.shape[1]
+    L = bartlett_bandwidth(scores(fit.jac_, fit.residual_, ny, sizes))
+    row = ", ".join(
+        f"{k} x {L}: {sandwich_covariance(fit.jac_, fit.residual_, ny, sizes, k * L).std[i]:.3g}"
+        for k in (1, 4, 16))
+    print(f"  std of {name} with the Bartlett window {row}")
 
 
 def structure_truth(arm_inertia: float) -> dict[str, float]:
