@@ -29,6 +29,8 @@ otherwise):
   first-order lag; the description's ``hold: linear`` holds the mean of the line through two
   samples, where the lag's mean weights the later sample more (0.582 for a lag equal to the
   period).
+  ``--quantise-current`` reads that mean through the plant's 12-bit motor-current A/D
+  (0.0195 A steps), still without noise.
 - ``--ideal-speeds``: the plant reports both speeds as their true values at the sample (no
   encoder count difference, tachometer noise or A/D quantisation), and the description reads
   the sun speed as instantaneous (no ``sampling: interval``).
@@ -43,7 +45,8 @@ Usage::
 
     .venv/bin/python scripts/gravity_bias.py [--seeds 0 1 2] [--fit-decimate 0 1]
         [--draw SEED] [--noise-free] [--own-model] [--structure]
-        [--ideal-current] [--ideal-speeds] [--hold-weight W] [--bandwidths]
+        [--ideal-current [--quantise-current]] [--ideal-speeds] [--hold-weight W]
+        [--bandwidths]
 """
 
 from __future__ import annotations
@@ -90,6 +93,8 @@ def main() -> int:
                     help="also print M and D against the plant's")
     ap.add_argument("--ideal-current", action="store_true",
                     help="the plant reports the interval's mean motor current (held as sampled)")
+    ap.add_argument("--quantise-current", action="store_true",
+                    help="with --ideal-current: read that current through the plant's A/D")
     ap.add_argument("--ideal-speeds", action="store_true",
                     help="the plant reports both true speeds at the sample")
     ap.add_argument("--hold-weight", type=float, default=None,
@@ -99,8 +104,10 @@ def main() -> int:
     a = ap.parse_args()
     if a.hold_weight is not None and not 0.0 <= a.hold_weight <= 1.0:
         ap.error(f"--hold-weight: expected a weight in [0, 1], got {a.hold_weight}")
+    if a.quantise_current and not a.ideal_current:
+        ap.error("--quantise-current: needs --ideal-current")
     if a.ideal_current or a.ideal_speeds:
-        ideal_sensors(a.ideal_current, a.ideal_speeds)
+        ideal_sensors(a.ideal_current, a.ideal_speeds, a.quantise_current)
     if a.hold_weight is not None:
         weighted_hold(a.hold_weight)
     hidden = load_hidden("gravity_arm", draw=a.draw)
@@ -148,18 +155,22 @@ def main() -> int:
     return 0
 
 
-def ideal_sensors(current: bool, speeds: bool) -> None:
-    """Make every plant of this process report the interval's mean motor current (``current``)
-    and the true speeds at the sample (``speeds``), noise-free (a counterfactual plant: the
-    controller and the physics are unchanged, only what the samples say)."""
+def ideal_sensors(current: bool, speeds: bool, quantise: bool = False) -> None:
+    """Make every plant of this process report the interval's mean motor current (``current``;
+    with ``quantise`` read by the plant's motor-current A/D) and the true speeds at the sample
+    (``speeds``), noise-free (a counterfactual plant: the controller and the physics are
+    unchanged, only what the samples say)."""
     measure = core.PlantSim._measure
 
     def ideal(self: core.PlantSim, clamped: bool) -> core.SampleValues:
         v = measure(self, clamped)
         if current:  # the mean the next sub-step applies (one sub-step per sample at 1 kHz)
             tau, i0, ref = self.drive.current_time_constant, self.physics.i_motor, self._i_ref
-            v = dataclasses.replace(v, motor_current=(
-                ref + (i0 - ref) * lag_mean_factor(self.step, tau) if tau else ref))
+            mean = ref + (i0 - ref) * lag_mean_factor(self.step, tau) if tau else ref
+            if quantise:
+                full = self.sensors.motor_current_range
+                mean = core._quantise(mean, 2.0 * full / 4096, full)
+            v = dataclasses.replace(v, motor_current=mean)
         if speeds:
             v = dataclasses.replace(v, sun_speed=float(self.state.omega[0]),
                                     carrier3_speed=float(self.physics.output_speed()))

@@ -154,11 +154,11 @@ def test_gravity_arm_is_the_only_accepted_effect(
     "(2026-11-29); the masses and dampings carry offsets of the same size (--structure: "
     "noise-free +0.07 to +0.25 %, 3-7 std; with the sensor noise -0.36 to +0.03 %, up to "
     "4.4 std on one of three recordings), so it is not the arm's term alone (2026-12-05). "
-    "Found (2026-12-05, --ideal-current, --ideal-speeds, --hold-weight, --bandwidths; "
-    "docs/identification.md, Tests): without noise the offset is the motor current's "
-    "intersample (the drive's lag weights the later sample 0.582, hold: linear 0.5) plus the "
-    "5-ms decimation's box mean, in equal parts; with the plant's true interval current the "
-    "1-ms fit is exact. With noise the offsets scatter 1.4-3 times the reported std"))
+    "Found (2026-12-05, --ideal-current, --quantise-current, --hold-weight, --bandwidths; "
+    "docs/identification.md, Tests): with the plant's exact interval current the 1-ms fit "
+    "is exact; the measured current's error (A/D steps, noise) is the main part, the "
+    "intersample weight a smaller one, the 5-ms decimation's box mean adds as much again; "
+    "with noise the offsets scatter 1.4-3 times the reported std"))
 def test_gravity_arm_cos_coefficient_is_the_plants(
         runs: dict[str, tuple[Path, Path]], root: Path) -> None:
     """``a`` of ``a cos(theta_c3 / N) + b sin(theta_c3 / N)`` within 3 reported std of the
