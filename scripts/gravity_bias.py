@@ -38,8 +38,8 @@ otherwise):
   ``1 - W`` and ``W`` (the description's 0.5; the plant's drive 0.582, see above), with the
   measured current: the share of the offset the hold's weight carries under noise.
 - ``--bandwidths``: the reported std of ``a`` again with the Bartlett window 4 and 16 times the
-  automatic one (:func:`dvt_identify.uncertainty.sandwich_covariance`): how much of the score's
-  correlation the automatic (AR(1) plug-in) window leaves out.
+  automatic one (:func:`dvt_identify.uncertainty.covariance_bandwidth`, the fit's): how much of
+  the score's correlation the automatic window leaves out.
 
 Usage::
 
@@ -74,7 +74,7 @@ from dvt_identify.description import load_description
 from dvt_identify.fit import OEFit
 from dvt_identify.loop import LoopConfig, identify
 from dvt_identify.pipeline import load_segments
-from dvt_identify.uncertainty import bartlett_bandwidth, sandwich_covariance, scores
+from dvt_identify.uncertainty import covariance_bandwidth, sandwich_covariance, scores
 from dvt_model.params import load_parameters
 
 A, B = "gravity_a_carrier3", "gravity_b_carrier3"
@@ -218,7 +218,7 @@ def show_bandwidths(fit: OEFit, name: str) -> None:
     i = free.index(name)
     sizes = [sg.n for sg in fit.segments_]
     ny = fit.segments_[0].y.shape[1]
-    L = bartlett_bandwidth(scores(fit.jac_, fit.residual_, ny, sizes))
+    L = covariance_bandwidth(scores(fit.jac_, fit.residual_, ny, sizes))
     row = ", ".join(
         f"{k} x {L}: {sandwich_covariance(fit.jac_, fit.residual_, ny, sizes, k * L).std[i]:.3g}"
         for k in (1, 4, 16))

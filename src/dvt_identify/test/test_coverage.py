@@ -27,9 +27,10 @@ coverage the test claims (the Clopper-Pearson interval meets the claimed range):
   in a probe of 100 runs with other seeds): the claim the data support there is "at least 0.80",
   not 0.95.
 
-Measured by this test (seed 2026, 100 runs per case): linear, white 0.94-0.97 per parameter
-(pooled 0.955), AR(0.9) 0.90-0.94 (0.922); with the friction, white 0.93-0.97 (0.951), AR(0.9)
-0.90-0.96 (0.919).
+Measured by this test (seed 2026, 100 runs per case; again on 2026-12-05 with the covariance
+window of :func:`~dvt_identify.uncertainty.covariance_bandwidth`, the same figures): linear,
+white 0.94-0.97 per parameter (pooled 0.955), AR(0.9) 0.90-0.94 (0.922); with the friction,
+white 0.94-0.97 (0.951), AR(0.9) 0.90-0.96 (0.919).
 
 The fit changed while this test was written (a helper optimising ``dvt_identify``): the same
 friction case with AR(0.9) noise covered the mass and damping entries in only 0.59-0.64 of 100

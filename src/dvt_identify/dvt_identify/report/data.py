@@ -137,7 +137,8 @@ def stage_dict(stage: Stage, units: dict[str, str], val: Sequence[Any] = ()) -> 
         "parameters": stage.parameters(),
         "parameter_std": stage.fit.parameter_std(),
         "parameter_relative_std": relative_std(stage),
-        "parameter_std_method": "HAC sandwich (Bartlett lag window, Andrews bandwidth)",
+        "parameter_std_method": ("HAC sandwich (Bartlett lag window, the longer of Andrews' "
+                                 "AR(1) and Newey-West's nonparametric bandwidth)"),
         "at_bounds": at_bounds(stage),
         "suspect": suspect(stage),
         "effects": [e.label() for e in stage.effects],
