@@ -120,14 +120,21 @@ def without_intersample(text: str, where: Path) -> Path:
     """The ``dvt`` description ``text`` without ``hold: linear`` on the motor current and
     ``sampling: interval`` on the sun speed (:func:`dvt_identify.data.intersample`): the
     simulation's own convention, written to ``where``."""
-    keys = (", hold: linear}", ",\n     sampling: interval}")
-    if any(text.count(k) != 1 for k in keys):
-        raise SystemExit("band_lags: the dvt description's motor or sun_shaft line changed")
-    for k in keys:
-        text = text.replace(k, "}")
     path = where / "dvt-no-intersample.yaml"
-    path.write_text(text)
+    path.write_text(drop_intersample(text, hold=True, sampling=True))
     return path
+
+
+def drop_intersample(text: str, hold: bool, sampling: bool) -> str:
+    """The ``dvt`` description ``text`` with the motor current held as sampled (``hold``: no
+    ``hold: linear``) and the sun speed read as instantaneous (``sampling``: no ``sampling:
+    interval``)."""
+    for on, key in ((hold, ", hold: linear}"), (sampling, ",\n     sampling: interval}")):
+        if on:
+            if text.count(key) != 1:
+                raise SystemExit("the dvt description's motor or sun_shaft line changed")
+            text = text.replace(key, "}")
+    return text
 
 
 ENGAGED_S = 0.7

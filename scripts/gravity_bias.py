@@ -59,7 +59,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from band_lags import _refit_on_own_model, _show
+from band_lags import _refit_on_own_model, _show, drop_intersample
 
 from dvt_driver.plant import core
 from dvt_driver.plant.hidden import load_hidden
@@ -122,7 +122,7 @@ def main() -> int:
     sensors = (dataclasses.replace(SensorConfig(), tach_noise=0.0, motor_current_noise=0.0,
                                    brake_current_noise=0.0) if a.noise_free else None)
     tmp = Path(tempfile.mkdtemp(prefix="dvt-gravity-bias-"))
-    text = ideal_description(load_description("dvt").text, a.ideal_current, a.ideal_speeds)
+    text = drop_intersample(load_description("dvt").text, a.ideal_current, a.ideal_speeds)
     desc = load_description(with_declared_arm(text, n, tmp))
     print(f"plant draw {a.draw}: reduction {n:g}, a {truth[A]:.6f}, b {truth[B]:.6f} N m")
     offsets: dict[int, list[tuple[float, float]]] = {q: [] for q in a.fit_decimate}
@@ -179,17 +179,6 @@ def ideal_sensors(current: bool, speeds: bool, quantise: bool = False) -> None:
     if current and core.PlantSim(load_parameters("physical")).substeps != 1:
         raise SystemExit("gravity_bias: --ideal-current needs one physics sub-step per sample")
     core.PlantSim._measure = ideal  # type: ignore[method-assign]
-
-
-def ideal_description(text: str, current: bool, speeds: bool) -> str:
-    """The ``dvt`` description ``text`` with the motor current held as sampled (``current``)
-    and the sun speed read as instantaneous (``speeds``)."""
-    for on, key in ((current, ", hold: linear}"), (speeds, ",\n     sampling: interval}")):
-        if on:
-            if text.count(key) != 1:
-                raise SystemExit("gravity_bias: the dvt description's motor or sun line changed")
-            text = text.replace(key, "}")
-    return text
 
 
 def weighted_hold(weight: float) -> None:
