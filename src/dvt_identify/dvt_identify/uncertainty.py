@@ -189,8 +189,15 @@ def covariance_bandwidth(series: Sequence[Array], max_fraction: float = 0.25) ->
     five recordings scatter like a window of about 50); the nonparametric rule sums only a few
     lags and falls short of a strong AR(1) persistence, which the AR(1) rule catches."""
     lags = nw_lags(sum(int(np.shape(s)[0]) for s in series))
-    return max(bartlett_bandwidth(series, max_fraction),
-               nw_bandwidth([lag_sums(s, lags) for s in series], max_fraction))
+    return window_of([ar1_terms(s) for s in series], [lag_sums(s, lags) for s in series],
+                     max_fraction)
+
+
+def window_of(terms: Sequence[tuple[float, float, int]], lagged: Sequence[tuple[Array, int]],
+              max_fraction: float = 0.25) -> int:
+    """:func:`covariance_bandwidth` from each series' :func:`ar1_terms` and :func:`lag_sums`
+    (series met one at a time): the longer of the two rules' windows."""
+    return max(bandwidth_of(terms, max_fraction), nw_bandwidth(lagged, max_fraction))
 
 
 def long_run_covariance(series: Sequence[Array], bandwidth: int) -> Array:
@@ -319,7 +326,7 @@ def sandwich_by_segment(rows: Callable[[int], tuple[Array, Array, NDArray[np.int
         lagged.append(lag_sums(g, lags))
     if not parts:
         raise UncertaintyError("sandwich_by_segment: no segment")
-    L = max(bandwidth_of(terms), nw_bandwidth(lagged))
+    L = window_of(terms, lagged)
     S = np.zeros((q, q))
     for k, n in enumerate(seg_sizes):
         J, r, cols = rows(k)
