@@ -11,12 +11,16 @@ run of the same plant into it, once with the pushed terms and once with the ``ef
 parameter emptied (everything else as pushed): the term alone lowers the live carrier-3
 residual.
 
-Tolerance of the pushed gap: within a factor 2 of the drawn gap. Not 3 reported std: the refit
-of the compliant play (an impact oscillator) does not move the gap from the scorer's grid value
-(``gap_scan`` 0.005, 0.01, 0.02, 0.04 rad, a factor 2 apart) and reports a degenerate std
-(about 1e-9 rad, a zero finite-difference Jacobian, not an uncertainty); the test checks that,
-so it fails once the refit reports a real std (then the bound becomes 3 std). Measured: the
-committed draw (gap 0.0416 rad) gives the grid value 0.04; the nominal plant (0.03) gave 0.02.
+Tolerance of the pushed gap: 3 reported std of the drawn gap. The load rattling in the play is
+chaotic (a change of 1e-9 moves its speed by O(1) seconds later), so the fit's tangents pass the
+play as the identity and difference it along its own parameters by a secant over 0.3 of their
+values (:data:`dvt_identify.effects.backlash.SECANT_SHARE`). Before, the long-horizon
+derivative went into the Jacobian: the refit did not move the gap from the scorer's grid value
+(0.04) and every std of the fit came out about 1e6 too small (M11 2e-12 against the baseline's
+1.9e-5); the test checks that the structure's std is the baseline's order again. Measured on
+the committed draw (gap 0.04158 rad): 0.04099 +- 0.00043 (1.4 std). The std is the mean
+effect's only: with other secant shares (0.03 to 1) the refit lands between 0.0399 and 0.0423,
+about twice the std apart (docs/identification.md).
 
 Live residual: carrier-3 RMS with the term below 0.85 times that without (measured 0.80 on the
 committed draw re-recorded with the as-built bands, 0.81 before, 0.69-0.78 on the nominal
@@ -92,11 +96,10 @@ def test_compliant_backlash_is_pushed_and_lowers_the_live_residual(procs, rclpy_
     terms = json.loads(push.parameters["effects"])
     (spline,) = [t for t in terms if t["kind"] == "spline_play"]
     assert spline["output"] == 1  # carrier 3 of the node's (sun_shaft, carrier3)
-    # the play the plant drew, from the scorer's grid (module docstring: why a factor 2)
-    std = result.final.fit.parameter_std()["gap_carrier3"]
-    assert std < 1e-6 * spline["gap"], (
-        "the refit now reports a usable std for the gap: bound it by 3 std", std)
-    assert 0.5 * truth.gap <= spline["gap"] <= 2.0 * truth.gap, (spline, truth)
+    # the play the plant drew, within 3 reported std (module docstring)
+    std, base = result.final.fit.parameter_std(), result.baseline.fit.parameter_std()
+    assert std["M11"] > 0.2 * base["M11"], ("the play collapsed the covariance", std, base)
+    assert abs(spline["gap"] - truth.gap) <= 3.0 * std["gap_carrier3"], (spline, truth, std)
 
     params = tmp_path / "pushed.yaml"
     params.write_text(yaml.safe_dump({"/**": {"ros__parameters": {

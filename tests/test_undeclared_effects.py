@@ -264,18 +264,18 @@ def test_engagement_dead_time_matches_the_drawn_wet_bands(
         td, shape)
 
 
-def test_backlash_gap_is_the_drawn_one_within_the_scan_resolution(
+def test_backlash_gap_is_the_drawn_one_within_3_std(
         results: dict[str, tuple[IdentificationResult, HiddenEffects]],
         tmp_path_factory: pytest.TempPathFactory) -> None:
-    """The play in the spline within a factor 2 of the drawn gap. Why not 3 std: the refit of
-    the compliant play (an impact oscillator) does not move the gap from the scorer's grid
-    value (gap_scan 0.005, 0.01, 0.02, 0.04 rad: a factor 2 apart) and reports a degenerate
-    std (about 1e-9 rad: a zero finite-difference Jacobian, not an uncertainty), which this
-    test checks so that it fails once the refit reports a real one (then: 3 std)."""
+    """The play in the spline within 3 reported std of the drawn gap, and the structure's std
+    not collapsed by it. The rattling load is chaotic: the fit passes the play's map as the
+    identity to the tangents and takes a wide secant along its own parameters (before, its
+    divergence went into the Jacobian: every std about 1e6 too small, the gap left at the
+    scorer's grid value; docs/identification.md section 2). Measured: 0.04099 +- 0.00043 rad
+    against the drawn 0.04158 (1.4 std)."""
     r, truth = _identify(results, tmp_path_factory, "ident-backlash")
     assert truth.backlash is not None
     p, sd = _estimates(r)
     gap = p["gap_carrier3"]
-    assert sd["gap_carrier3"] < 1e-6 * gap, (
-        "the refit now reports a usable std for the gap: test it with 3 std", sd)
-    assert 0.5 * truth.backlash.gap <= gap <= 2.0 * truth.backlash.gap, (gap, truth.backlash)
+    assert sd["M11"] > 0.2 * r.baseline.fit.parameter_std()["M11"], sd
+    assert abs(gap - truth.backlash.gap) <= 3.0 * sd["gap_carrier3"], (gap, sd, truth.backlash)

@@ -18,7 +18,9 @@ force by the implicit-function rule). What feeds the loop is differentiated per 
 - the **initial state** enters the loop's tangents directly.
 
 The effects' output maps (delay, sensor gain, play, ...) carry the states' tangents by a
-directional difference of the map (exact for a linear map). One-state models with dry friction
+directional difference of the map (exact for a linear map); a chaotic map (an impact
+oscillator, :attr:`dvt_identify.effects.Effect.chaotic_output`) passes them as the identity and
+is differenced along its own parameters by a wide secant. One-state models with dry friction
 use the lumped scalar loop, which has no tangents: their Jacobian is a forward difference of
 the whole simulation (as before), which :func:`simulate_sens` does itself.
 
@@ -58,6 +60,16 @@ def _step(value: float, upper: float) -> float:
     """A one-sided difference step at ``value`` (backwards when it would pass ``upper``)."""
     h = FD_STEP * max(1.0, abs(value))
     return -h if value + h > upper else h
+
+
+def _param_step(model: OEModel, e: Effect, loc: int, j: int, value: float) -> float:
+    """The difference step of parameter ``j`` (effect ``e``'s ``loc``-th) at ``value``: the
+    smooth rule's, or the effect's wide secant when its output map is chaotic."""
+    upper = model.specs[j].upper
+    wide = e.secant_step(loc, value) if e.chaotic_output else None
+    if wide is None:
+        return _step(value, upper)
+    return -wide if value + wide > upper else wide
 
 
 def _overrides(e: Effect, name: str) -> bool:
@@ -112,7 +124,8 @@ def simulate_sens_states(model: OEModel, theta: Array, seg: Segment, x0: Array,
     pr = model.prepare(theta, seg)
     params = [int(j) for j in params]
     if model.nx == 1 and pr.dry:
-        return _finite_differences(model, theta, seg, np.asarray(x0, float), params, states)
+        return _finite_differences(model, theta, seg, np.asarray(x0, float), params, states,
+                                   pr)
     return _forward(model, theta, seg, np.asarray(x0, float), params, states, pr)
 
 
@@ -164,7 +177,7 @@ def _forward(model: OEModel, theta: Array, seg: Segment, x0: Array, params: list
             continue
         i = int(np.searchsorted(offs, j, side="right")) - 1
         e, loc = model.effects[i], j - int(offs[i])
-        h = _step(float(theta[j]), model.specs[j].upper)
+        h = _param_step(model, e, loc, j, float(theta[j]))
         p2 = pr.ps[i].copy()
         p2[loc] += h
         if _overrides(e, "output_transform"):
@@ -236,8 +249,8 @@ def _output_tangents(model: OEModel, pr: Prepared, x: Array, tx: Array,
             continue
         yt = e.output_transform(p, y, pr.dt)
         y_next = y if yt is None else yt
-        ty_next = ty.copy() if yt is None else np.zeros_like(ty)
-        if yt is not None:
+        ty_next = ty.copy() if yt is None or e.chaotic_output else np.zeros_like(ty)
+        if yt is not None and not e.chaotic_output:
             scale = float(np.max(np.abs(y))) or 1.0
             for q in range(ty.shape[2]):
                 col = ty[:, :, q]
@@ -257,25 +270,31 @@ def _output_tangents(model: OEModel, pr: Prepared, x: Array, tx: Array,
 
 
 def _finite_differences(model: OEModel, theta: Array, seg: Segment, x0: Array,
-                        params: list[int], states: bool) -> tuple[Array, Array, Array, Array]:
-    """The lumped one-state loop has no tangents: one-sided differences of the simulation."""
-    x, y = model.simulate_states(theta, seg, x0)
-    xcols, ycols = [], []
-    for j in params:
-        h = _step(float(theta[j]), model.specs[j].upper)
+                        params: list[int], states: bool, pr: Prepared
+                        ) -> tuple[Array, Array, Array, Array]:
+    """The lumped one-state loop has no tangents: one-sided differences of the states, the
+    output maps differenced as in :func:`_forward`."""
+    x, _ = model.simulate_states(theta, seg, x0)
+    offs = np.cumsum([model.n_struct] + [len(e.params) for e in model.effects])
+    own: dict[int, list[tuple[int, int, float]]] = {}
+    xcols = []
+    for q, j in enumerate(params):
+        if j < model.n_struct:
+            h = _step(float(theta[j]), model.specs[j].upper)
+        else:
+            i = int(np.searchsorted(offs, j, side="right")) - 1
+            e, loc = model.effects[i], j - int(offs[i])
+            h = _param_step(model, e, loc, j, float(theta[j]))
+            if _overrides(e, "output_transform"):
+                own.setdefault(i, []).append((q, loc, h))
         th = theta.copy()
         th[j] += h
-        xp, yp = model.simulate_states(th, seg, x0)
-        xcols.append((xp - x) / h)
-        ycols.append((yp - y) / h)
+        xcols.append((model.simulate_states(th, seg, x0)[0] - x) / h)
     if states:
         for s in range(model.nx):
             h = FD_STEP * max(1.0, abs(float(x0[s])))
             x0p = np.array(x0, float)
             x0p[s] += h
-            xp, yp = model.simulate_states(theta, seg, x0p)
-            xcols.append((xp - x) / h)
-            ycols.append((yp - y) / h)
+            xcols.append((model.simulate_states(theta, seg, x0p)[0] - x) / h)
     tx = np.stack(xcols, axis=2) if xcols else np.zeros((*x.shape, 0))
-    J = np.stack(ycols, axis=2) if ycols else np.zeros((*y.shape, 0))
-    return x, tx, y, J
+    return x, tx, *_output_tangents(model, pr, x, tx, own)

@@ -54,6 +54,21 @@ def _segment(n: int = 3000, dt: float = 0.002) -> object:
     return make_segment("s", t, u, np.zeros((n, 2)), INPUTS, STATES)
 
 
+def _central(model: OEModel, theta: np.ndarray, seg: object, x0: np.ndarray, q: int
+             ) -> np.ndarray:
+    """Central difference of the outputs along parameter ``q`` (then the initial states)."""
+    tp, tm, xp, xm = theta.copy(), theta.copy(), x0.copy(), x0.copy()
+    if q < theta.size:
+        h = 1e-6 * max(abs(theta[q]), 1e-3)
+        tp[q] += h
+        tm[q] -= h
+    else:
+        h = 1e-6
+        xp[q - theta.size] += h
+        xm[q - theta.size] -= h
+    return (model.simulate(tp, seg, xp) - model.simulate(tm, seg, xm)) / (2 * h)
+
+
 def test_the_sensitivities_are_the_derivatives_of_the_simulation() -> None:
     model, theta = _model()
     seg = _segment()
@@ -65,18 +80,7 @@ def test_the_sensitivities_are_the_derivatives_of_the_simulation() -> None:
     assert J.shape == (seg.n, 2, theta.size + 2)
     checked = 0
     for q in range(theta.size + 2):
-        if q < theta.size:
-            h = 1e-6 * max(abs(theta[q]), 1e-3)
-            tp, tm = theta.copy(), theta.copy()
-            tp[q] += h
-            tm[q] -= h
-            fd = (model.simulate(tp, seg, x0) - model.simulate(tm, seg, x0)) / (2 * h)
-        else:
-            h = 1e-6
-            xp, xm = x0.copy(), x0.copy()
-            xp[q - theta.size] += h
-            xm[q - theta.size] -= h
-            fd = (model.simulate(theta, seg, xp) - model.simulate(theta, seg, xm)) / (2 * h)
+        fd = _central(model, theta, seg, x0, q)
         err = np.linalg.norm(J[:, :, q] - fd) / np.linalg.norm(fd)
         assert err < 1e-3, (model.names[q] if q < theta.size else f"x0[{q - theta.size}]", err)
         checked += 1
@@ -133,3 +137,73 @@ def test_the_zoh_derivative_is_the_frechet_derivative(A: np.ndarray) -> None:
     # a defective A (a double eigenvalue) takes the block exponential
     if np.allclose(A, [[-1.0, 1.0], [0.0, -1.0]]):
         assert _zoh_derivatives_eig(A, dA, dt) is None
+
+
+def test_a_chaotic_output_map_passes_the_tangents_and_takes_a_wide_secant() -> None:
+    """A load rattling in a compliant play (``backlash``, ``compliant: true``) is chaotic: a
+    change of 1e-9 in M11 moves the sensed speed by orders of magnitude more than 1e-9 times any
+    mean effect, so its derivative is no regressor. The tangents pass the map as the identity
+    (the structure's columns are those of the model without it) and its own parameters take the
+    secant over :data:`~dvt_identify.effects.backlash.SECANT_SHARE` of their values."""
+    from dvt_identify.effects.backlash import SECANT_SHARE
+
+    full, theta_full = _model()
+    rigid = OEModel(full.structure, [])
+    play = make_effect("backlash", "a", STATES, INPUTS, output_names=STATES,
+                       options={"compliant": True})
+    assert play.chaotic_output
+    model = OEModel(full.structure, [play])
+    p_play = np.array([0.05, 300.0, 0.1])  # gap [rad], wn [rad/s], zeta
+    theta = np.concatenate([theta_full[:6], p_play])
+    seg = _segment()
+    x0 = np.array([3.0, 1.0])
+    # the premise: a step of 1e-9 in M11 moves the rattle by far more than 1e-9 x the rigid
+    # path's own derivative (measured: 204 times its largest value)
+    y = model.simulate(theta, seg, x0)
+    tp = theta.copy()
+    tp[0] += 1e-9
+    moved = np.abs(model.simulate(tp, seg, x0) - y)[:, 0] / 1e-9
+    J0 = simulate_sens(rigid, theta[:6], seg, x0, [0], False)[2][:, 0, 0]
+    assert moved.max() > 100 * np.abs(J0).max(), (moved.max(), J0)
+    # the structure's and the initial state's columns: the rigid model's
+    _, yr, Jr = simulate_sens(rigid, theta[:6], seg, x0, range(6), True)
+    _, yj, J = simulate_sens(model, theta, seg, x0, range(theta.size), True)
+    np.testing.assert_allclose(J[:, :, [0, 1, 2, 3, 4, 5, 9, 10]], Jr, rtol=1e-12, atol=1e-12)
+    # the play's own: the secant over SECANT_SHARE of each value (of the map on the same rigid
+    # outputs: the plain simulation's differ from the tangent loop's by 1e-10, which the
+    # rattle makes 1e-3)
+    base = play.output_transform(p_play, yr, seg.dt)
+    assert base is not None and np.array_equal(yj, base)
+    for loc in range(3):
+        h = SECANT_SHARE * p_play[loc]
+        p2 = p_play.copy()
+        p2[loc] += h
+        np.testing.assert_allclose(J[:, :, 6 + loc],
+                                   (play.output_transform(p2, yr, seg.dt) - base) / h,
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_the_lumped_one_state_loop_is_differenced_with_the_same_output_maps() -> None:
+    """One state with dry friction runs the lumped scalar loop (no tangents): its states are
+    differenced and the output maps carried as in the tangent loop; the Jacobian agrees with
+    central differences of the simulation."""
+    st = MechanicalStructure(["a"], ["motor"], [["M11"]], [["D11"]], [[1.0]],
+                             {"M11": {"initial": 0.02, "lower": 1e-6}, "D11": 0.03},
+                             "N m", "rad/s")
+    effs = [make_effect("coulomb_friction", "a", ["a"], ["motor"]),
+            make_effect("measurement_delay", "a", ["a"], ["motor"], output_names=["a"]),
+            make_effect("sensor_gain", "a", ["a"], ["motor"], output_names=["a"])]
+    model = OEModel(st, effs)
+    theta = np.array([0.02, 0.03, 0.4, 0.05, 0.0047, 0.02])
+    rng = np.random.default_rng(5)
+    n, dt = 3000, 0.002
+    u = np.repeat(rng.uniform(-1.5, 1.5, n // 150 + 1), 150)[:n, None]
+    seg = make_segment("s", np.arange(n) * dt, u, np.zeros((n, 1)), ["motor"], ["a"])
+    x0 = np.array([2.0])
+    x, y, J = simulate_sens(model, theta, seg, x0, range(theta.size), True)
+    assert np.array_equal(y, model.simulate(theta, seg, x0))
+    assert np.sum(x[:, 0] == 0.0) > 20  # the stick rule was exercised
+    for q in range(theta.size + 1):
+        fd = _central(model, theta, seg, x0, q)
+        err = np.linalg.norm(J[:, :, q] - fd) / np.linalg.norm(fd)
+        assert err < 1e-3, (q, err)

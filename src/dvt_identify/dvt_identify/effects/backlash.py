@@ -28,6 +28,16 @@ from dvt_identify.errors import DescriptionError
 from dvt_identify.simloop import spline_load
 from dvt_model.backlash import dead_zone, play, spline_substeps
 
+SECANT_SHARE = 0.3
+"""The compliant play's difference step in the fit, as a share of the parameter's value.
+
+The load rattling in the play is chaotic: the output's difference along a step ``h`` is the
+play's mean effect plus the divergence of two rattles, which does not shrink with ``h`` (a step
+of 1e-9 moved the load speed by O(1) a few seconds later), so the secant carries a part that
+grows as ``1/h`` and the fit's covariance shrinks with the step. The share is where the gap's
+std stops growing with it (``ident-backlash``: 0.03 -> 0.00009 rad, 0.1 -> 0.0002, 0.2 ->
+0.00037, 0.3 -> 0.00043, 0.5 -> 0.00042, 1.0 -> 0.00056; docs/identification.md)."""
+
 
 def _not_an_output(where: str, outputs: Sequence[str]) -> str:
     return f"{where!r} is not one of the model's outputs {list(outputs)}"
@@ -139,10 +149,16 @@ class CompliantOutputBacklash(Effect):
 
     name = "backlash"
     order = 40
+    chaotic_output = True
 
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:
         return ctx.at_state and bool(ctx.options.get("compliant"))
+
+    def secant_step(self, loc: int, value: float) -> float | None:
+        """:data:`SECANT_SHARE` of the value (of the probe play for a gap below it)."""
+        floor = (self.params[0].step or 0.0) if loc == 0 else 0.0
+        return SECANT_SHARE * max(abs(value), floor) or None
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:

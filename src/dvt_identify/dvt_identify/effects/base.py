@@ -296,6 +296,13 @@ class Effect:
             absorb so that no local score sees it: the loop refits it when its
             :meth:`scoring_evidence` reports ``signature: True`` (a data signature a reader
             can check), first from the structure's prior values.
+        chaotic_output: the output map is an impact oscillator whose long-horizon derivative
+            carries no information (a change of 1e-9 in its input moves its output by O(1)
+            a few seconds later: a load rattling in a play). The fit's tangents pass such a map
+            as the identity for the directions that reach it from upstream (the load follows
+            the member's mean speed) and difference it along its own parameters by the secant
+            of :meth:`secant_step`; without this every figure of the fit's covariance came
+            out about 1e6 times too small.
 
     Attributes:
         where: human-readable place (member/state, input or output name).
@@ -312,6 +319,7 @@ class Effect:
     no_term: ClassVar[str] = "the model node has no such term"
     global_map: ClassVar[bool] = False
     node_input_transform: ClassVar[bool] = False
+    chaotic_output: ClassVar[bool] = False
     where: str = ""
     params: tuple[ParamSpec, ...] = ()
     member: Array | None = None
@@ -479,6 +487,11 @@ class Effect:
     def scoring_step(self, name: str, dt: float) -> float | None:
         """A fixed finite-difference step for the scoring regressor of parameter ``name``
         (``None``: the scorer chooses, from a probe or the spec's ``step``)."""
+        return None
+
+    def secant_step(self, loc: int, value: float) -> float | None:
+        """The fit's difference step for own parameter ``loc`` at ``value`` when the output map
+        is chaotic (:attr:`chaotic_output`; ``None``: the smooth rule's step)."""
         return None
 
     def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
