@@ -219,11 +219,6 @@ def collect(result: Any, test: TestFigures | None = None,
     return out
 
 
-def _csv_num(v: float) -> str:
-    return repr(float(v)) if math.isfinite(v) else ("nan" if math.isnan(v) else
-                                                    ("inf" if v > 0 else "-inf"))
-
-
 def write_series(sets: Sequence[SeriesSet], out_dir: str | Path, desc: Any = None,
                  mcap: bool = False) -> dict[str, Path]:
     """Write ``series.npz``, ``series/<role>-<k>.csv`` and (``mcap``) ``series/<role>-<k>/``
@@ -272,10 +267,11 @@ def _write_csv(path: Path, seg: Segment, b: Array, f: Array) -> None:
             + [f"{n}_residual_final" for n in seg.output_names])
     data = np.column_stack([seg.t, seg.u, seg.y, b, f, seg.y - f])
     with path.open("w", newline="") as fh:
-        wr = csv.writer(fh)
-        wr.writerow(cols)
-        for row in data:
-            wr.writerow([_csv_num(float(v)) for v in row])
+        csv.writer(fh).writerow(cols)
+        # the shortest exact text of each value (Python's float repr: also "nan", "inf",
+        # "-inf"), rows as the csv module ends them; built in one join, not value by value
+        # (1.3 s of a 3.9-s dvt-identify run before)
+        fh.writelines(",".join(map(repr, row)) + "\r\n" for row in data.tolist())
 
 
 def _joint_states(topic: str, signals: Sequence[tuple[Any, Array]], stamps: Sequence[int],
