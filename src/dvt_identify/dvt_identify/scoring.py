@@ -57,7 +57,7 @@ def absorbed_threshold(fit: OEFit, segments: Sequence[Segment], span: ModelSpan,
     dry friction) tells a regressor 1.6 % outside the span from noise (measured on EMPS:
     direction-dependent viscous friction next to Coulomb friction with an offset, 47 % of the
     residual), a stick rule keeps the 2 % margin."""
-    m = fit.model
+    m = fit.model.passing_chaotic()
     w = fit.weights_
     free = np.flatnonzero(m.free)
     if free.size == 0:
@@ -130,8 +130,19 @@ class CandidateScore:
 
 
 def candidate_theta(fit: OEFit, cand: Effect, values: Array) -> tuple[OEModel, Array]:
-    model = OEModel(fit.model.structure, (*fit.model.effects, cand))
+    """The model a candidate's columns difference (the fit's, its chaotic output maps passed
+    as the identity: :meth:`~dvt_identify.simulation.OEModel.passing_chaotic`; the candidate's
+    own map kept) and its parameters (the fit's, then ``values``)."""
+    model = OEModel(fit.model.structure, (*fit.model.passing_chaotic().effects, cand))
     return model, np.concatenate([fit.theta_, values])
+
+
+def differenced_base(fit: OEFit, segments: Sequence[Segment]) -> list[Array]:
+    """The outputs (each (N, ny)) the scoring columns are differences from: the fit's model at
+    its parameters, its chaotic output maps passed as the identity (a rattling load's
+    divergence is no regressor; the fit's own residual keeps them)."""
+    m = fit.model.passing_chaotic()
+    return [m.simulate(fit.theta_, s, x0) for s, x0 in zip(segments, fit.x0_, strict=True)]
 
 
 def column(model: OEModel, theta: Array, segments: Sequence[Segment], x0s: Sequence[Array],
@@ -162,7 +173,9 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
     w = fit.weights_
     base = [fit.model.simulate(fit.theta_, s, x0) for s, x0 in zip(segments, fit.x0_,
                                                                      strict=True)]
-    absorbed = absorbed_threshold(fit, segments, span, base)
+    diffed = base if fit.model.passing_chaotic() is fit.model else differenced_base(fit,
+                                                                                   segments)
+    absorbed = absorbed_threshold(fit, segments, span, diffed)
     coarsest = max(segments, key=lambda s: s.dt)  # shape variants the slowest rate can show
     view = SegmentView.of(coarsest)
     ctx = ScoringContext(
@@ -200,7 +213,7 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                     # up (e.g. quadratic drag at hundreds of rad/s), so shrink until it is finite
                     h = 1.0
                     for _ in range(8):
-                        col = column(model, theta, segments, fit.x0_, base, w, off + gi, h)
+                        col = column(model, theta, segments, fit.x0_, diffed, w, off + gi, h)
                         rms = float(np.sqrt(np.mean(col ** 2)))
                         if rms > 0:
                             h = 1e-3 / rms
@@ -208,7 +221,7 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                         h *= 1e-3
                 if null[gi] + h > spec.upper:
                     h = -h
-                cols.append(column(model, theta, segments, fit.x0_, base, w, off + gi, h))
+                cols.append(column(model, theta, segments, fit.x0_, diffed, w, off + gi, h))
                 steps.append(h)
             Z = np.column_stack(cols)
             Zp = span.complement(Z)
@@ -331,7 +344,7 @@ def _secants(fit: OEFit, segments: Sequence[Segment], rel_step: float = 1e-4
     parameters' columns over all segments (m, p) and each segment's initial-state columns over
     its own rows (m_k, nx) (they are zero elsewhere; a segment's initial state is differenced
     by simulating that segment alone)."""
-    m = fit.model
+    m = fit.model.passing_chaotic()
     w = fit.weights_
     theta = fit.theta_
     free = np.flatnonzero(m.free)

@@ -22,7 +22,7 @@ from scipy.linalg import expm
 
 from dvt_identify.data import Segment, held_inputs
 from dvt_identify.discrete import simulate_linear, zoh
-from dvt_identify.effects.base import Effect, ParamSpec, SegmentView
+from dvt_identify.effects.base import Effect, ParamSpec, PassedOutput, SegmentView
 from dvt_identify.errors import DataError, DescriptionError, FitError
 from dvt_identify.simloop import loop_members, loop_scalar, smooth_value
 from dvt_identify.structures import ModelStructure, output_matrix, output_names
@@ -353,6 +353,17 @@ class OEModel:
         self.nonlinear = any(e.state_dependent for e in self.effects)
         self.C = output_matrix(structure)
         self.output_names = output_names(structure)
+
+    def passing_chaotic(self) -> OEModel:
+        """This model with each chaotic output map (:attr:`Effect.chaotic_output`, a load
+        rattling in a play) passed as the identity, the parameters unchanged: the model the
+        scorer differences (its columns and the model's span), as the fit's tangents pass such
+        a map (:mod:`dvt_identify.sensitivity`); the model itself when it has none."""
+        if not any(e.chaotic_output for e in self.effects):
+            return self
+        return OEModel(self.structure, [
+            PassedOutput(where=e.where, params=e.params, fixed=e.fixed_names())
+            if e.chaotic_output else e for e in self.effects])
 
     @property
     def nx(self) -> int:

@@ -39,6 +39,7 @@ from dvt_identify.scoring import (
     CandidateScore,
     candidate_theta,
     column,
+    differenced_base,
     explained,
     sensitivities,
 )
@@ -145,8 +146,7 @@ def search_unlisted(fit: OEFit, segments: Sequence[Segment], libraries: Sequence
         q_mat, _ = np.linalg.qr(sensitivities(fit, segments))
     e_p = e - q_mat @ (q_mat.T @ e)
     ee = float(e @ e) or 1.0
-    base = [fit.model.simulate(fit.theta_, s, x0)
-            for s, x0 in zip(segments, fit.x0_, strict=True)]
+    base = differenced_base(fit, segments)
     n_lib = sum(len(lib.params) for lib in libraries)
     penalty = math.log(m_rows) + 2.0 * math.log(max(n_lib, 2))
     best: CandidateScore | None = None

@@ -207,3 +207,22 @@ def test_the_lumped_one_state_loop_is_differenced_with_the_same_output_maps() ->
         fd = _central(model, theta, seg, x0, q)
         err = np.linalg.norm(J[:, :, q] - fd) / np.linalg.norm(fd)
         assert err < 1e-3, (q, err)
+
+
+def test_the_scorer_differences_the_model_with_its_chaotic_maps_passed() -> None:
+    """The model the scorer differences (:meth:`OEModel.passing_chaotic`): the same parameters,
+    names and free set, its outputs those of the model without the play; a model without a
+    chaotic map is itself."""
+    full, theta_full = _model()
+    rigid = OEModel(full.structure, [])
+    assert rigid.passing_chaotic() is rigid
+    play = make_effect("backlash", "a", STATES, INPUTS, output_names=STATES,
+                       options={"compliant": True})
+    model = OEModel(full.structure, [play])
+    passed = model.passing_chaotic()
+    assert passed.names == model.names and np.array_equal(passed.free, model.free)
+    theta = np.concatenate([theta_full[:6], [0.05, 300.0, 0.1]])
+    seg = _segment()
+    x0 = np.array([3.0, 1.0])
+    assert np.array_equal(passed.simulate(theta, seg, x0), rigid.simulate(theta[:6], seg, x0))
+    assert not np.array_equal(model.simulate(theta, seg, x0), passed.simulate(theta, seg, x0))

@@ -537,3 +537,15 @@ class Effect:
         if self.member is None:
             raise DescriptionError(f"{self.label()}: needs a member vector")
         return self.member
+
+
+@dataclass
+class PassedOutput(Effect):
+    """A chaotic output map's stand-in (:attr:`Effect.chaotic_output`): the same parameters and
+    fixed names, no behaviour, so its map is the identity (:meth:`dvt_identify.simulation.
+    OEModel.passing_chaotic`)."""
+
+    fixed: tuple[str, ...] = ()
+
+    def fixed_names(self) -> tuple[str, ...]:
+        return self.fixed
