@@ -44,12 +44,16 @@ def _x0s(segs: Sequence[Segment], model: OEModel | None = None) -> list[Array]:
 
 def _sensitivities(model: OEModel, theta: Array, segs: Sequence[Segment], w: Array,
                    rel_step: float = 1e-3) -> Array:
-    """Columns: d(yhat/w)/d(log theta_i) for every parameter, then d/dx0 per segment."""
+    """Columns: d(yhat/w)/d(log theta_i) for every parameter, then d/dx0 per segment. A chaotic
+    output map (a rattling load) is passed as the identity except along its own parameters
+    (:meth:`~dvt_identify.simulation.OEModel.passing_chaotic`, as the fit's tangents)."""
     x0s = _x0s(segs, model)
+    passed = model.passing_chaotic()
+    own = set(model.chaotic_parameters())
 
-    def sim(th: Array, xs: Sequence[Array]) -> Array:
+    def sim(th: Array, xs: Sequence[Array], m: OEModel = passed) -> Array:
         with np.errstate(all="ignore"):
-            return np.concatenate([(model.simulate(th, s, x) / w).ravel()
+            return np.concatenate([(m.simulate(th, s, x) / w).ravel()
                                    for s, x in zip(segs, xs, strict=True)])
     cols = []
     for i in range(theta.size):
@@ -63,7 +67,8 @@ def _sensitivities(model: OEModel, theta: Array, segs: Sequence[Segment], w: Arr
         if hi <= lo:
             cols.append(np.zeros(sum(s.y.size for s in segs)))
             continue
-        cols.append((sim(tp, x0s) - sim(tm, x0s)) / (hi - lo) * scale)
+        m = model if i in own else passed
+        cols.append((sim(tp, x0s, m) - sim(tm, x0s, m)) / (hi - lo) * scale)
     wx = w if model.C is None else np.full(model.nx, float(np.max(w)))  # hidden states
     for k in range(len(segs)):
         for j in range(model.nx):

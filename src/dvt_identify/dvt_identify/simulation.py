@@ -365,6 +365,11 @@ class OEModel:
             PassedOutput(where=e.where, params=e.params, fixed=e.fixed_names())
             if e.chaotic_output else e for e in self.effects])
 
+    def chaotic_parameters(self) -> list[int]:
+        """Indices into ``theta`` of the chaotic output maps' own parameters."""
+        return [j for e, sl in zip(self.effects, self._slices, strict=True)
+                if e.chaotic_output for j in range(sl.start, sl.stop)]
+
     @property
     def nx(self) -> int:
         """Number of states (= outputs unless the structure has hidden states)."""

@@ -226,3 +226,24 @@ def test_the_scorer_differences_the_model_with_its_chaotic_maps_passed() -> None
     x0 = np.array([3.0, 1.0])
     assert np.array_equal(passed.simulate(theta, seg, x0), rigid.simulate(theta[:6], seg, x0))
     assert not np.array_equal(model.simulate(theta, seg, x0), passed.simulate(theta, seg, x0))
+
+
+def test_the_fisher_rule_passes_a_chaotic_map_but_along_its_own_parameters() -> None:
+    """The identifiability check's columns (:func:`dvt_identify.fisher._sensitivities`) of a
+    model with a rattling play: the structure's and the initial states' are the rigid model's;
+    the play's own differ from zero (it is differenced, not passed, along them)."""
+    from dvt_identify.fisher import _sensitivities
+
+    full, theta_full = _model()
+    rigid = OEModel(full.structure, [])
+    play = make_effect("backlash", "a", STATES, INPUTS, output_names=STATES,
+                       options={"compliant": True})
+    model = OEModel(full.structure, [play])
+    assert model.chaotic_parameters() == [6, 7, 8]
+    theta = np.concatenate([theta_full[:6], [0.05, 300.0, 0.1]])
+    seg = _segment()
+    w = np.ones(2)
+    J = _sensitivities(model, theta, [seg], w)
+    Jr = _sensitivities(rigid, theta[:6], [seg], w)
+    np.testing.assert_allclose(J[:, [0, 1, 2, 3, 4, 5, 9, 10]], Jr, rtol=1e-12, atol=1e-12)
+    assert np.all(np.linalg.norm(J[:, 6:9], axis=0) > 0)
