@@ -14,13 +14,13 @@ residual.
 Tolerance of the pushed gap: 3 reported std of the drawn gap. The load rattling in the play is
 chaotic (a change of 1e-9 moves its speed by O(1) seconds later), so the fit's tangents pass the
 play as the identity and difference it along its own parameters by a secant over 0.3 of their
-values (:data:`dvt_identify.effects.backlash.SECANT_SHARE`). Before, the long-horizon
-derivative went into the Jacobian: the refit did not move the gap from the scorer's grid value
-(0.04) and every std of the fit came out about 1e6 too small (M11 2e-12 against the baseline's
-1.9e-5); the test checks that the structure's std is the baseline's order again. Measured on
-the committed draw (gap 0.04158 rad): 0.04099 +- 0.00043 (1.4 std). The std is the mean
-effect's only: with other secant shares (0.03 to 1) the refit lands between 0.0399 and 0.0423,
-about twice the std apart (docs/identification.md).
+values (:data:`dvt_identify.effects.backlash.SECANT_SHARE`), and the reported std adds where
+the fit lands with that secant halved and doubled (:meth:`dvt_identify.fit.OEFit.
+add_landing_spread`). Before, the long-horizon derivative went into the Jacobian: the refit did
+not move the gap from the scorer's grid value (0.04) and every std of the fit came out about
+1e6 too small (M11 2e-12 against the baseline's 1.9e-5); the test checks that the structure's
+std is the baseline's order again. Measured on the committed draw (gap 0.04158 rad): 0.04099
++- 0.00078 (0.75 std; docs/identification.md section 2).
 
 Live residual: carrier-3 RMS with the term below 0.85 times that without (measured 0.80 on the
 committed draw re-recorded with the as-built bands, 0.81 before, 0.69-0.78 on the nominal

@@ -24,6 +24,7 @@ a third of its time; 125 and 100 Hz lose 0.1-0.3 points and up to 3 % on ``D``. 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -199,6 +200,11 @@ class _Problem:
         return cls(segments=list(segments), screen_segments=screen, q=q, nseg=nseg,
                    w=fit.weights_, lo=lo, hi=hi, zlo=zlo, zhi=zhi, screen_nfev=budget,
                    sst=sst if sst > 0 else 1.0)
+
+
+LANDING_SCALES = (0.5, 2.0)
+"""The factors on a chaotic map's secant step of the refits that measure where the fit lands
+(:meth:`OEFit.add_landing_spread`): half and twice the share in use."""
 
 
 class OEFit(StartPoints):
@@ -703,6 +709,45 @@ class OEFit(StartPoints):
     def parameters(self) -> dict[str, float]:
         """Physical parameters by name (structure, effects, derived)."""
         return self.model.parameters(self.theta_)
+
+    def add_landing_spread(self, segments: Sequence[Segment],
+                           scales: Sequence[float] = LANDING_SCALES) -> OEFit:
+        """Add where the fit lands in a chaotic map's rough cost to ``std_``; returns self.
+
+        A model with chaotic output maps (:meth:`OEModel.chaotic_parameters`, a load rattling
+        in a play) is fitted along the secants of those maps' own parameters
+        (:meth:`Effect.secant_step`), and where the optimiser stops in their rough cost moves
+        with that secant by more than the sandwich std. This refits ``segments`` (the fit's
+        own) from the start that gave ``theta_`` with each map's secant scaled by each of
+        ``scales`` (the effects' option ``secant_scale``) and adds the sample variance of the
+        landings (this fit's and the refits', per parameter) to the variance of every free
+        parameter. Sets
+        ``landing_spread_`` (p,) (0 without chaotic maps: nothing is refitted).
+        """
+        m = self.model
+        self.landing_spread_ = np.zeros(len(m.specs))
+        if not m.chaotic_parameters() or not scales:
+            return self
+        # from the start that gave theta_ (refitted from theta_ itself the optimiser stays put:
+        # the landing is the path's, not a local property)
+        best = min(self.starts_, key=lambda r: r.cost) if self.starts_ else None
+        origin = np.array(best.start, float) if best is not None else self.theta_
+        landings = [self.theta_]
+        for f in scales:
+            effs = [dataclasses.replace(e, options={**e.options, "secant_scale": float(f)})
+                    if e.chaotic_output else e for e in m.effects]
+            again = OEFit(OEModel(m.structure, effs), theta0=origin,
+                          weights=self.weights_, max_nfev=self.max_nfev, more_starts=0,
+                          physics_start=False, init_window=self.init_window).fit(segments)
+            landings.append(again.theta_)
+        spread = np.std(np.vstack(landings), axis=0, ddof=1)
+        spread[~m.free] = 0.0
+        self.landing_spread_ = spread
+        self.std_ = np.sqrt(self.std_ ** 2 + spread ** 2)
+        self._say("landing spread of the chaotic maps' fit (secant x "
+                  + ", ".join(f"{f:g}" for f in (1.0, *scales)) + "): "
+                  + ", ".join(f"{m.names[j]} {spread[j]:.3g}" for j in m.chaotic_parameters()))
+        return self
 
     def parameter_std(self) -> dict[str, float]:
         """Standard deviation of every estimated model parameter by name."""

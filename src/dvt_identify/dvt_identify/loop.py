@@ -376,6 +376,15 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                                folds, notes)
     if unexplained is not None:
         notes.append(_drift_veto(unexplained, tried=True))
+    for stage in (baseline, current) if current is not baseline else (baseline,):
+        # a chaotic output map's fit lands where its secant leads: that spread joins the std
+        stage.fit.add_landing_spread(fit_segs)
+        if np.any(stage.fit.landing_spread_):
+            notes.append(f"{stage.label}: the std include where the fit lands in the rough "
+                         "cost of a chaotic output map (refits with its secant halved and "
+                         "doubled): " + ", ".join(
+                             f"{stage.fit.model.names[j]} {stage.fit.landing_spread_[j]:.3g}"
+                             for j in stage.fit.model.chaotic_parameters()))
     return IdentificationResult(
         description=desc, estimation_bags=[s.name for s in est],
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,

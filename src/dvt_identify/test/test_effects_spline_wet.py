@@ -85,8 +85,10 @@ def test_spline_variants_stay_below_nyquist_and_probe_the_gap() -> None:
 
 
 def test_spline_parameter_checks() -> None:
-    with pytest.raises(DescriptionError, match="wn, zeta and probe_gap must be > 0"):
+    with pytest.raises(DescriptionError, match="wn, zeta, probe_gap and secant_scale must be"):
         _spline(wn=-1.0)
+    with pytest.raises(DescriptionError, match=r"> 0, got 400.0, 0.15, 0.01, 0.0"):
+        _spline(secant_scale=0.0)
     with pytest.raises(DescriptionError, match="'ring9' is not an input"):
         make_effect("backlash", "ring9", STATES, INPUTS, options={"compliant": True})
 

@@ -247,3 +247,38 @@ def test_the_fisher_rule_passes_a_chaotic_map_but_along_its_own_parameters() -> 
     Jr = _sensitivities(rigid, theta[:6], [seg], w)
     np.testing.assert_allclose(J[:, [0, 1, 2, 3, 4, 5, 9, 10]], Jr, rtol=1e-12, atol=1e-12)
     assert np.all(np.linalg.norm(J[:, 6:9], axis=0) > 0)
+
+
+def test_the_landing_spread_of_a_chaotic_fit_joins_its_std() -> None:
+    """:meth:`OEFit.add_landing_spread`: nothing for a model without a chaotic map; with a
+    rattling play, refits with its secant halved and doubled, and each free parameter's variance
+    grows by the landings' sample variance exactly."""
+    from dvt_identify.fit import OEFit
+
+    full, theta_full = _model()
+    seg = _segment(1500)
+    x0 = np.array([3.0, 1.0])
+    rigid = OEModel(full.structure, [])
+    y = rigid.simulate(theta_full[:6], seg, x0)
+    data = make_segment("s", seg.t, seg.u, y + np.random.default_rng(2).normal(0, 0.01, y.shape),
+                        INPUTS, STATES)
+    fit = OEFit(rigid, starts=1, more_starts=0).fit([data])
+    std = fit.std_.copy()
+    assert fit.add_landing_spread([data]) is fit
+    assert not np.any(fit.landing_spread_) and np.array_equal(fit.std_, std)
+
+    play = make_effect("backlash", "a", STATES, INPUTS, output_names=STATES,
+                       options={"compliant": True, "wn": 300.0, "zeta": 0.1})
+    model = OEModel(full.structure, [play])
+    theta = np.concatenate([theta_full[:6], [0.05, 300.0, 0.1]])
+    y = model.simulate(theta, seg, x0)
+    data = make_segment("s", seg.t, seg.u, y + np.random.default_rng(2).normal(0, 0.01, y.shape),
+                        INPUTS, STATES)
+    start = theta.copy()
+    start[6] = 0.04
+    fit = OEFit(model, starts=1, theta0=start, more_starts=0).fit([data])
+    std = fit.std_.copy()
+    fit.add_landing_spread([data])
+    spread = fit.landing_spread_
+    assert spread.shape == theta.shape and spread[6] > 0
+    np.testing.assert_allclose(fit.std_ ** 2, std ** 2 + spread ** 2, rtol=1e-12)

@@ -156,9 +156,12 @@ class CompliantOutputBacklash(Effect):
         return ctx.at_state and bool(ctx.options.get("compliant"))
 
     def secant_step(self, loc: int, value: float) -> float | None:
-        """:data:`SECANT_SHARE` of the value (of the probe play for a gap below it)."""
+        """:data:`SECANT_SHARE` of the value (of the probe play for a gap below it), times the
+        option ``secant_scale`` (default 1: :meth:`dvt_identify.fit.OEFit.add_landing_spread`
+        refits with others)."""
         floor = (self.params[0].step or 0.0) if loc == 0 else 0.0
-        return SECANT_SHARE * max(abs(value), floor) or None
+        scale = self.options.get("secant_scale", 1.0)
+        return SECANT_SHARE * float(scale) * max(abs(value), floor) or None  # type: ignore[arg-type]
 
     @classmethod
     def build(cls, ctx: BuildContext) -> Effect:
@@ -169,9 +172,11 @@ class CompliantOutputBacklash(Effect):
         wn0 = ctx.number("wn", 400.0)
         z0 = ctx.number("zeta", 0.15)
         probe = ctx.number("probe_gap", 0.01)
-        if not (wn0 > 0 and z0 > 0 and probe > 0):
-            raise DescriptionError(f"candidate backlash@{ctx.where} (compliant): wn, zeta and "
-                                   f"probe_gap must be > 0, got {wn0}, {z0}, {probe}")
+        scale = ctx.number("secant_scale", 1.0)
+        if not (wn0 > 0 and z0 > 0 and probe > 0 and scale > 0):
+            raise DescriptionError(f"candidate backlash@{ctx.where} (compliant): wn, zeta, "
+                                   f"probe_gap and secant_scale must be > 0, got {wn0}, {z0}, "
+                                   f"{probe}, {scale}")
         return cls(where=ctx.where, index=ctx.state_index(), options=dict(ctx.options),
                    params=(ParamSpec("gap" + sfx, 0.0, 0.0, 1.0, unit, step=probe),
                            ParamSpec("wn" + sfx, wn0, 10.0, 1e4,
