@@ -721,8 +721,8 @@ class OEFit(StartPoints):
         own) from the start that gave ``theta_`` with each map's secant scaled by each of
         ``scales`` (the effects' option ``secant_scale``) and adds the sample variance of the
         landings (this fit's and the refits', per parameter) to the variance of every free
-        parameter. Sets
-        ``landing_spread_`` (p,) (0 without chaotic maps: nothing is refitted).
+        parameter. Sets ``landing_spread_`` (p,) (0 without chaotic maps: nothing is
+        refitted).
         """
         m = self.model
         self.landing_spread_ = np.zeros(len(m.specs))

@@ -21,8 +21,9 @@ The effects' output maps (delay, sensor gain, play, ...) carry the states' tange
 directional difference of the map (exact for a linear map); a chaotic map (an impact
 oscillator, :attr:`dvt_identify.effects.Effect.chaotic_output`) passes them as the identity and
 is differenced along its own parameters by a wide secant. One-state models with dry friction
-use the lumped scalar loop, which has no tangents: their Jacobian is a forward difference of
-the whole simulation (as before), which :func:`simulate_sens` does itself.
+use the lumped scalar loop, which has no tangents: their states are differenced forward over
+the whole simulation, which :func:`simulate_sens` does itself, and the output maps carried as
+above.
 
 Cost, measured on the DVT baseline (12 parameters + 2 initial states, 7642 samples at 200 Hz):
 a whole Jacobian in about 4 ms, the time of five simulations, where the finite differences took
