@@ -151,7 +151,6 @@ def _forward(model: OEModel, theta: Array, seg: Segment, x0: Array, params: list
     tw = np.zeros((n, nx, P))
     tdcap = np.zeros((n, nd, P))
     own_out: dict[int, list[tuple[int, int, float]]] = {}  # effect -> (direction, local, h)
-    offs = np.cumsum([model.n_struct] + [len(e.params) for e in model.effects])
     struct = [(q, j) for q, j in enumerate(params) if j < model.n_struct]
     if struct:
         qs = [q for q, _ in struct]
@@ -176,8 +175,8 @@ def _forward(model: OEModel, theta: Array, seg: Segment, x0: Array, params: list
     for q, j in enumerate(params):
         if j < model.n_struct:
             continue
-        i = int(np.searchsorted(offs, j, side="right")) - 1
-        e, loc = model.effects[i], j - int(offs[i])
+        i, loc = model.effect_of(j)
+        e = model.effects[i]
         h = _param_step(model, e, loc, j, float(theta[j]))
         p2 = pr.ps[i].copy()
         p2[loc] += h
@@ -276,15 +275,14 @@ def _finite_differences(model: OEModel, theta: Array, seg: Segment, x0: Array,
     """The lumped one-state loop has no tangents: one-sided differences of the states, the
     output maps differenced as in :func:`_forward`."""
     x, _ = model.simulate_states(theta, seg, x0)
-    offs = np.cumsum([model.n_struct] + [len(e.params) for e in model.effects])
     own: dict[int, list[tuple[int, int, float]]] = {}
     xcols = []
     for q, j in enumerate(params):
         if j < model.n_struct:
             h = _step(float(theta[j]), model.specs[j].upper)
         else:
-            i = int(np.searchsorted(offs, j, side="right")) - 1
-            e, loc = model.effects[i], j - int(offs[i])
+            i, loc = model.effect_of(j)
+            e = model.effects[i]
             h = _param_step(model, e, loc, j, float(theta[j]))
             if _overrides(e, "output_transform"):
                 own.setdefault(i, []).append((q, loc, h))

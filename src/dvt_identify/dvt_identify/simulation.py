@@ -365,6 +365,15 @@ class OEModel:
             PassedOutput(where=e.where, params=e.params, fixed=e.fixed_names())
             if e.chaotic_output else e for e in self.effects])
 
+    def effect_of(self, j: int) -> tuple[int, int]:
+        """The effect that parameter ``j`` (an index into ``theta`` past the structure's)
+        belongs to and its place among that effect's parameters."""
+        for i, sl in enumerate(self._slices):
+            if sl.start <= j < sl.stop:
+                return i, j - sl.start
+        raise FitError(f"parameter index {j}: not an effect parameter (the structure has "
+                       f"{self.n_struct}, the model {len(self.specs)} in all)")
+
     def chaotic_parameters(self) -> list[int]:
         """Indices into ``theta`` of the chaotic output maps' own parameters."""
         return [j for e, sl in zip(self.effects, self._slices, strict=True)
