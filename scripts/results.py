@@ -11,7 +11,8 @@ Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.j
 ``hours`` (``dvt-bench identify --hours 1 --json``), ``loop`` (``dvt-bench loop
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
 randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
-false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``all``.
+false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``secant`` (the
+compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -113,6 +114,11 @@ DETECTOR_ARGS = ["--seeds", *(str(s) for s in range(3100, 3108)), "--seconds", "
 """``detector``: 8 clean plants of 25 min (the figures of docs/loop.md, "Limits")."""
 
 
+def secant() -> tuple[list[str], dict[str, Any]]:
+    cmd = ["python", "scripts/secant_sweep.py", "--json"]
+    return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
+
+
 def detector() -> tuple[list[str], dict[str, Any]]:
     cmd = ["python", "scripts/detector_residual.py", *DETECTOR_ARGS]
     return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
@@ -128,6 +134,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "false_effects": false_effects,
     "compare": _bench("identify", "--compare", "ident-none-1=ident-none-val", "--json"),
     "detector": detector,
+    "secant": secant,
 }
 
 

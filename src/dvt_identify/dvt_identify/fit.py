@@ -728,18 +728,8 @@ class OEFit(StartPoints):
         self.landing_spread_ = np.zeros(len(m.specs))
         if not m.chaotic_parameters() or not scales:
             return self
-        # from the start that gave theta_ (refitted from theta_ itself the optimiser stays put:
-        # the landing is the path's, not a local property)
-        best = min(self.starts_, key=lambda r: r.cost) if self.starts_ else None
-        origin = np.array(best.start, float) if best is not None else self.theta_
         landings = [self.theta_]
-        for f in scales:
-            effs = [dataclasses.replace(e, options={**e.options, "secant_scale": float(f)})
-                    if e.chaotic_output else e for e in m.effects]
-            again = OEFit(OEModel(m.structure, effs), theta0=origin,
-                          weights=self.weights_, max_nfev=self.max_nfev, more_starts=0,
-                          physics_start=False, init_window=self.init_window).fit(segments)
-            landings.append(again.theta_)
+        landings.extend(self.refit_secant(segments, f).theta_ for f in scales)
         spread = np.std(np.vstack(landings), axis=0, ddof=1)
         spread[~m.free] = 0.0
         self.landing_spread_ = spread
@@ -748,6 +738,27 @@ class OEFit(StartPoints):
                   + ", ".join(f"{f:g}" for f in (1.0, *scales)) + "): "
                   + ", ".join(f"{m.names[j]} {spread[j]:.3g}" for j in m.chaotic_parameters()))
         return self
+
+    def refit_secant(self, segments: Sequence[Segment], scale: float) -> OEFit:
+        """A new fit of ``segments`` with every chaotic output map's secant scaled by ``scale``
+        (the effects' option ``secant_scale``), from the start that gave ``theta_`` (refitted
+        from ``theta_`` itself the optimiser stays put: where it lands in the rough cost is the
+        path's, not a local property), with this fit's weights; its ``std_`` the sandwich's.
+        (:meth:`add_landing_spread`; ``scripts/secant_sweep.py`` sweeps ``scale``.)
+
+        Raises:
+            FitError: ``scale`` is not finite and > 0.
+        """
+        if not (math.isfinite(scale) and scale > 0):
+            raise FitError(f"refit_secant: scale must be finite and > 0, got {scale}")
+        m = self.model
+        best = min(self.starts_, key=lambda r: r.cost) if self.starts_ else None
+        origin = np.array(best.start, float) if best is not None else self.theta_
+        effs = [dataclasses.replace(e, options={**e.options, "secant_scale": float(scale)})
+                if e.chaotic_output else e for e in m.effects]
+        return OEFit(OEModel(m.structure, effs), theta0=origin, weights=self.weights_,
+                     max_nfev=self.max_nfev, more_starts=0, physics_start=False,
+                     init_window=self.init_window).fit(segments)
 
     def parameter_std(self) -> dict[str, float]:
         """Standard deviation of every estimated model parameter by name."""
