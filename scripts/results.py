@@ -12,7 +12,9 @@ Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.j
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
 randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
 false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``secant`` (the
-compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``all``.
+compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
+(hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``draws_step``
+(one Coulomb draw at four fit steps), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -119,6 +121,13 @@ def secant() -> tuple[list[str], dict[str, Any]]:
     return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
 
 
+def _script(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
+    def run() -> tuple[list[str], dict[str, Any]]:
+        cmd = ["python", *args]
+        return cmd, _json_command([str(BIN / "python"), *args])
+    return run
+
+
 def detector() -> tuple[list[str], dict[str, Any]]:
     cmd = ["python", "scripts/detector_residual.py", *DETECTOR_ARGS]
     return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
@@ -135,6 +144,9 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "compare": _bench("identify", "--compare", "ident-none-1=ident-none-val", "--json"),
     "detector": detector,
     "secant": secant,
+    "draws": _script("scripts/effect_draws.py", "--json"),
+    "draws_step": _script("scripts/effect_draws.py", "--presets", "coulomb", "--draws", "301",
+                          "--fit-decimate", "1", "2", "5", "10", "--json"),
 }
 
 

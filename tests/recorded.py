@@ -71,11 +71,12 @@ def identify_recorded(name: str, tmp_path: Path, max_effects: int | None = None
     return identify_bags(BAGS / name, val, max_effects), val
 
 
-def identify_bags(est_bag: Path, val_bag: Path, max_effects: int | None = None
-                  ) -> IdentificationResult:
+def identify_bags(est_bag: Path, val_bag: Path, max_effects: int | None = None,
+                  fit_decimate: int | None = None) -> IdentificationResult:
     """Identify the ``dvt`` description on ``est_bag`` validated on ``val_bag`` as
     ``dvt-identify`` does (identifiability check applied), at most ``max_effects`` accepted
-    effects (``None``: the description's own; 0: the baseline only)."""
+    effects (``None``: the description's own; 0: the baseline only), fitted at the
+    description's rate or with ``fit_decimate`` (``dvt-identify --fit-decimate``)."""
     desc = load_description("dvt")
     est = load_segments([est_bag], desc)
     vals = load_segments([val_bag], desc)
@@ -84,4 +85,6 @@ def identify_bags(est_bag: Path, val_bag: Path, max_effects: int | None = None
     cfg = LoopConfig.from_options(desc.fit, desc.preprocess.fit_decimate)
     if max_effects is not None:
         cfg = dataclasses.replace(cfg, max_effects=max_effects)
+    if fit_decimate is not None:
+        cfg = dataclasses.replace(cfg, fit_decimate=fit_decimate)
     return identify(est, vals, desc, cfg, check=chk)

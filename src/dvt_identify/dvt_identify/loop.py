@@ -477,7 +477,9 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
     gain = after - before
     dm = validation_test(current, stage, val)
     why = []
-    bad = sc.effect.inadmissible(fit.theta_[len(old.theta_):])
+    states = [fit.model.simulate_states(fit.theta_, seg, x0)[0]
+              for seg, x0 in zip(fit_segs, fit.x0_, strict=True)]
+    bad = sc.effect.inadmissible_on(fit.theta_[len(old.theta_):], states)
     if bad is not None:
         why.append(f"inadmissible: {bad}")
     if not lr > thr:

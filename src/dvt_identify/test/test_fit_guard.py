@@ -190,6 +190,31 @@ def test_negative_friction_is_inadmissible_with_the_reason() -> None:
     assert "not a finite" in (eff.inadmissible(np.array([math.nan, 0.0])) or "")
 
 
+def test_a_stribeck_curve_the_member_never_runs_beyond_is_inadmissible() -> None:
+    """A fitted Stribeck speed is a low-speed curve only if the member runs beyond
+    STRIBECK_REACH of it in at least STRIBECK_BEYOND_SHARE of the samples (the simulated
+    states of the fitted model); the member's own column of the states is read."""
+    from dvt_identify.effects.friction import STRIBECK_BEYOND_SHARE, STRIBECK_REACH
+
+    eff = make_effect("stribeck_friction", "sun_shaft", ["sun_shaft", "carrier3"], ["motor"])
+    n = 2000
+    sun = np.linspace(-210.0, 210.0, n)  # rad/s; carrier 3 far faster: it must not count
+    states = [np.column_stack([sun, 1e4 * np.ones(n)])]
+    bent = eff.inadmissible_on(np.array([0.05, 134.0]), states)
+    assert bent is not None and "vs = 134: " in bent and "0 % of the samples" in bent
+    assert "reach 210" in bent
+    assert eff.inadmissible_on(np.array([0.05, 5.0]), states) is None  # 93 % beyond 15
+    # at the share: beyond REACH vs in just under / over the share of the samples
+    edge = 210.0 * (1.0 - STRIBECK_BEYOND_SHARE) / STRIBECK_REACH
+    assert eff.inadmissible_on(np.array([0.05, edge * 1.02]), states) is not None
+    assert eff.inadmissible_on(np.array([0.05, edge * 0.98]), states) is None
+    # the data-free rules still apply first, and no states leave them alone
+    assert "finite" in (eff.inadmissible_on(np.array([math.nan, 5.0]), states) or "")
+    assert eff.inadmissible_on(np.array([0.05, 134.0]), []) is None
+    coulomb = make_effect("coulomb_friction", "sun_shaft", ["sun_shaft", "carrier3"], ["motor"])
+    assert coulomb.inadmissible_on(np.array([0.05, 0.0]), states) is None
+
+
 def test_compliant_backlash_is_unavailable_at_a_slow_rate() -> None:
     eff = make_effect("backlash", "carrier3", ["sun_shaft", "carrier3"], ["motor"],
                       options={"compliant": True})

@@ -465,6 +465,14 @@ class Effect:
             return f"{spec.name} <= {spec.upper:g}"
         return "(none)"
 
+    def inadmissible_on(self, p: Array, states: Sequence[Array]) -> str | None:
+        """Why the fitted parameters ``p`` are not a physical instance of the effect *on this
+        data*, or ``None``: :meth:`inadmissible`, and what only the data can tell (a shape
+        the fit stretched over the whole operating range, e.g. a Stribeck speed the member
+        never gets beyond). ``states``: the fitted model's simulated states (N, nx) of each
+        estimation segment (every member's speed, measured or hidden)."""
+        return self.inadmissible(p)
+
     def unavailable(self, segs: Sequence[SegmentView]) -> str | None:
         """Why the effect cannot be built for these segments' rates (e.g. every contact
         frequency of the scan is above the Nyquist frequency), or ``None``: the scorer then

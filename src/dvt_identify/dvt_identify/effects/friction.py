@@ -32,6 +32,13 @@ from dvt_identify.effects.base import (
 from dvt_identify.errors import DescriptionError
 from dvt_model.laws import ABS_VISCOUS, COULOMB, STRIBECK, WINDAGE
 
+STRIBECK_REACH = 3.0
+"""Stribeck speeds beyond which a Stribeck term is gone (``exp(-REACH^2)`` of ``Fs``)."""
+STRIBECK_BEYOND_SHARE = 0.05
+"""Share of the samples a member must spend beyond :data:`STRIBECK_REACH` Stribeck speeds for a
+fitted Stribeck curve to be one (the plant's drawn Stribeck curves: 20-50 % of the samples of
+``dvt-experiment ident``; the curves bent over the operating range: 0 %)."""
+
 
 def _eps(ctx: BuildContext) -> float:
     """The ``eps`` option of a dry law (0: the exact sign with the stick rule).
@@ -180,6 +187,32 @@ class StribeckFriction(Effect):
         if vs <= self.eps:
             return (f"{self.params[1].name} = {vs:.3g} {self.params[1].unit} is not above the "
                     f"sign's smoothing eps = {self.eps:g}: no Stribeck curve at that scale")
+        return None
+
+    def inadmissible_on(self, p: Array, states: Sequence[Array]) -> str | None:
+        """Besides :meth:`inadmissible`: the member must run beyond the Stribeck curve on this
+        data. A Stribeck curve is the low-speed hump above the sliding friction; beyond
+        :data:`STRIBECK_REACH` Stribeck speeds its term is gone (``exp(-9)``, 0.01 % of
+        ``Fs``), and at least :data:`STRIBECK_BEYOND_SHARE` of the samples must be there. A
+        fitted ``vs`` the member hardly exceeds is not a Stribeck curve: the law bent over the
+        whole operating range, a friction falling with speed that stands in for something
+        else (measured: a plant with Coulomb friction only named a "Stribeck" term at
+        vs = 134 rad/s on a sun shaft that stays below 402 rad/s throughout)."""
+        why = self.inadmissible(p)
+        if why is not None or not states:
+            return why
+        vs = float(p[1])
+        c = self.require_member()
+        speeds = np.concatenate([np.abs(np.asarray(x, float) @ c) for x in states])
+        beyond = float(np.mean(speeds > STRIBECK_REACH * vs)) if speeds.size else 0.0
+        if beyond < STRIBECK_BEYOND_SHARE:
+            unit = f" {self.params[1].unit}" if self.params[1].unit else ""
+            return (f"{self.params[1].name} = {vs:.3g}{unit}: the member runs "
+                    f"beyond {STRIBECK_REACH:g} vs = {STRIBECK_REACH * vs:.3g} in "
+                    f"{100 * beyond:.3g} % of the samples (< "
+                    f"{100 * STRIBECK_BEYOND_SHARE:g} %; its speeds reach "
+                    f"{float(np.max(speeds)):.3g}): not a low-speed Stribeck curve but a "
+                    "friction bent over the whole operating range")
         return None
 
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
