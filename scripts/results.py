@@ -13,8 +13,8 @@ Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.j
 randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
 false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``secant`` (the
 compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
-(hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``draws_step``
-(one Coulomb draw at four fit steps), ``all``.
+(hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``dry_step``
+(the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -145,8 +145,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "detector": detector,
     "secant": secant,
     "draws": _script("scripts/effect_draws.py", "--json"),
-    "draws_step": _script("scripts/effect_draws.py", "--presets", "coulomb", "--draws", "301",
-                          "--fit-decimate", "1", "2", "5", "10", "--json"),
+    "dry_step": _script("scripts/dry_step_bias.py", "--json"),
 }
 
 

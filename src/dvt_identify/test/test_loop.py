@@ -115,6 +115,32 @@ def test_coulomb_accepted_and_recovered(tmp_path: Path) -> None:
     assert paths["md"].read_text().count("coulomb_friction") >= 2
 
 
+def test_a_dry_friction_found_at_a_decimated_step_is_refitted_at_the_recordings_rate() -> None:
+    """The loop decides at a decimated step (4 x DT here); once it has added an effect a
+    stick rule simulates, the final model is refitted at the recordings' own rate from its
+    optimum (loop._polish_dry): its figures are the full-rate fit's, the decision the
+    decimated one's. (The step's bias itself needs coupled members, which this one-member
+    plant lacks: scripts/dry_step_bias.py measures it on the DVT.)"""
+    desc = description()
+    cfg = replace(LoopConfig.from_options(desc.fit), max_effects=1, fit_decimate=4)
+    res = identify([make(1, fc=6.0)], [make(2, fc=6.0)], desc, cfg)
+    [dec] = res.accepted
+    assert dec.score.effect.name == "coulomb_friction"
+    assert res.fit_dt == pytest.approx(4 * DT)
+    assert dec.stage is not None and dec.stage.fit.segments_[0].dt == pytest.approx(4 * DT)
+    assert res.final.fit.segments_[0].dt == pytest.approx(DT)
+    assert any("refitted at the recordings' own rate" in n and "coulomb_friction@v" in n
+               for n in res.notes), res.notes
+    assert res.final is not dec.stage and res.final.label == dec.stage.label
+    final = res.final.parameters()
+    assert final["M"] == pytest.approx(10.0, rel=0.01)
+    assert final["Fc"] == pytest.approx(6.0, rel=0.01)
+    # a baseline (nothing added) is never refitted
+    clean = identify([make(1)], [make(2)], desc, cfg)
+    assert clean.final is clean.baseline
+    assert clean.final.fit.segments_[0].dt == pytest.approx(4 * DT)
+
+
 def _accepted_pair(first: str, second: str) -> tuple[Any, list[Any], list[Segment],
                                                      list[Segment], LoopConfig]:
     """A cart with Coulomb friction (Fc 6 N) fitted with two effects as if the loop had
