@@ -24,14 +24,11 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
+from effect_draws import record_draw  # noqa: E402  (this script's folder)
 from recorded import identify_bags  # noqa: E402
 
-from dvt_driver.plant.hidden import load_hidden  # noqa: E402
-from dvt_driver.plant.offline import record_offline  # noqa: E402
-from dvt_driver.run.experiment_core import build  # noqa: E402
 from dvt_identify.fit import OEFit  # noqa: E402
 from dvt_identify.simulation import zoh_decimate  # noqa: E402
-from dvt_model.params import load_parameters  # noqa: E402
 
 DRAW = 301
 STEPS = (1, 2, 5, 10)
@@ -44,12 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON document")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        params = load_parameters("physical")
-        hidden = load_hidden("coulomb", draw=DRAW)
-        est = record_offline(Path(tmp) / "est", build("ident", seed=400 + DRAW), params,
-                             hidden, seed=500 + DRAW)
-        val = record_offline(Path(tmp) / "val", build("ident", seed=600 + DRAW), params,
-                             hidden, seed=700 + DRAW)
+        est, val = record_draw("coulomb", DRAW, Path(tmp))
         r = identify_bags(est, val, fit_decimate=1)
     fit = r.final.fit
     seg = fit.segments_[0]

@@ -36,25 +36,33 @@ PRESETS = ("coulomb", "stribeck", "windage")
 DRAWS = (301, 302, 303, 304)
 
 
+def record_draw(preset: str, draw: int, root: Path) -> tuple[Path, Path]:
+    """The estimation and validation runs of ``preset`` at ``draw`` (module docstring: seeds
+    400/500 + draw and 600/700 + draw), recorded offline under ``root``."""
+    from dvt_driver.plant.hidden import load_hidden
+    from dvt_driver.plant.offline import record_offline
+    from dvt_driver.run.experiment_core import build
+    from dvt_model.params import load_parameters
+
+    params = load_parameters("physical")
+    hidden = load_hidden(preset, draw=draw)
+    return (record_offline(root / "est", build("ident", seed=400 + draw), params, hidden,
+                           seed=500 + draw),
+            record_offline(root / "val", build("ident", seed=600 + draw), params, hidden,
+                           seed=700 + draw))
+
+
 def one(preset: str, draw: int, tmp: str, fit_decimate: int | None = None) -> dict[str, Any]:
     """Record and identify ``preset`` at ``draw`` (module docstring), fitted at the
     description's rate or with ``fit_decimate``; the row."""
     from recorded import PLANT_MEMBER, identify_bags
 
     from dvt_driver.plant.hidden import load_hidden
-    from dvt_driver.plant.offline import record_offline
-    from dvt_driver.run.experiment_core import build
     from dvt_identify.bench_identify.compare import md_errors, truth_md
-    from dvt_model.params import load_parameters
 
-    root = Path(tmp) / f"{preset}-{draw}-{fit_decimate}"
-    params = load_parameters("physical")
     hidden = load_hidden(preset, draw=draw)
     t0 = time.monotonic()
-    est = record_offline(root / "est", build("ident", seed=400 + draw), params, hidden,
-                         seed=500 + draw)
-    val = record_offline(root / "val", build("ident", seed=600 + draw), params, hidden,
-                         seed=700 + draw)
+    est, val = record_draw(preset, draw, Path(tmp) / f"{preset}-{draw}-{fit_decimate}")
     r = identify_bags(est, val, fit_decimate=fit_decimate)
     fit = r.final.fit
     std = fit.parameter_std()

@@ -116,21 +116,13 @@ DETECTOR_ARGS = ["--seeds", *(str(s) for s in range(3100, 3108)), "--seconds", "
 """``detector``: 8 clean plants of 25 min (the figures of docs/loop.md, "Limits")."""
 
 
-def secant() -> tuple[list[str], dict[str, Any]]:
-    cmd = ["python", "scripts/secant_sweep.py", "--json"]
-    return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
-
-
 def _script(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
+    """A named command that runs ``python ARGS`` in the project's venv (prints one JSON
+    document)."""
     def run() -> tuple[list[str], dict[str, Any]]:
         cmd = ["python", *args]
         return cmd, _json_command([str(BIN / "python"), *args])
     return run
-
-
-def detector() -> tuple[list[str], dict[str, Any]]:
-    cmd = ["python", "scripts/detector_residual.py", *DETECTOR_ARGS]
-    return cmd, _json_command([str(BIN / "python"), *cmd[1:]])
 
 
 NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
@@ -142,8 +134,8 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "model": _bench("model", "--json"),
     "false_effects": false_effects,
     "compare": _bench("identify", "--compare", "ident-none-1=ident-none-val", "--json"),
-    "detector": detector,
-    "secant": secant,
+    "detector": _script("scripts/detector_residual.py", *DETECTOR_ARGS),
+    "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
 }
