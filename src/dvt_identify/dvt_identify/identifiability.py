@@ -44,6 +44,9 @@ non-zero value of meaningful size (:func:`probe_values`).
    below; a saturation level at its null, where no output responds to it): fixing it at a
    prior the data contradict would bias the others.
 
+After a fit, :func:`at_fit` takes the Fisher rule again for the parameters it flagged, at the
+fitted values and with the fit's own residual level: the rule is local and its level a guess.
+
 Whatever is fixed or not determined is stated first (:meth:`Identifiability.summary`). Each
 undetermined parameter comes with advice: the first row of the description's own
 ``experiments`` section whose pattern matches its name
@@ -61,7 +64,7 @@ The Fisher rule's sensitivities and figures are in :mod:`dvt_identify.fisher`, t
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -124,6 +127,8 @@ class ParameterCheck:
         advice_from: ``description`` (its ``experiments`` section) or ``generic``.
         probe: the value its effect's influence was measured at when that is not its prior
             (an effect at its null), else ``None``.
+        kind: which rule found it undetermined: ``unused`` (rule 1), ``quiet`` (rule 3),
+            ``null`` or ``weak`` (the Fisher rule); ``""`` when determined.
     """
 
     name: str
@@ -138,6 +143,7 @@ class ParameterCheck:
     fixed: bool = False
     advice_from: str = "generic"
     probe: float | None = None
+    kind: str = ""
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready."""
@@ -178,6 +184,9 @@ class Identifiability:
         samples: samples the check ran on.
         influence: each kept model effect's influence at the probe point [output standard
             deviations] (label -> RMS change of the weighted outputs without it).
+        revised: the parameters the Fisher rule left undetermined at the priors and found
+            determined at the fitted values (:func:`at_fit`), each with its reason at the
+            priors (empty before fitting).
     """
 
     parameters: list[ParameterCheck]
@@ -185,6 +194,7 @@ class Identifiability:
     residual_level: float = RESIDUAL_LEVEL
     samples: int = 0
     influence: dict[str, float] = field(default_factory=dict)
+    revised: dict[str, str] = field(default_factory=dict)
 
     @property
     def undetermined(self) -> list[ParameterCheck]:
@@ -219,7 +229,8 @@ class Identifiability:
                 "removed_effects": self.removed_effects, "experiments": self.experiments(),
                 "advice": self.advice(), "effect_influence": self.influence,
                 "residual_level": self.residual_level, "colour_factor": COLOUR_FACTOR,
-                "max_relative_std": MAX_RELATIVE_STD, "samples": self.samples}
+                "max_relative_std": MAX_RELATIVE_STD, "samples": self.samples,
+                "determined_at_fit": self.revised}
 
     def summary(self) -> list[str]:
         """Lines for people: :meth:`headline`, then each undetermined parameter with its
@@ -228,9 +239,11 @@ class Identifiability:
 
     def headline(self) -> list[str]:
         """The first lines for people: the verdict, what is fixed at its prior (its effect
-        removed), what is still fitted though not determined."""
+        removed), what is still fitted though not determined; after the fit, what the fitted
+        model determines though the priors did not (:meth:`revised_line`)."""
         if self.enough:
-            return ["The recording determines every parameter of the baseline model."]
+            return ["The recording determines every parameter of the baseline model."
+                    + (" " + self.revised_line() if self.revised else "")]
         und = self.undetermined
         head = (f"The recording does not determine {len(und)} of {len(self.parameters)} "
                 f"parameters: " + ", ".join(p.name for p in und) + ".")
@@ -248,7 +261,21 @@ class Identifiability:
         if kept:
             lines.append("Still fitted, their values not to be trusted: "
                          + ", ".join(kept) + ".")
+        if self.revised:
+            lines.append(self.revised_line())
         return lines
+
+    def revised_line(self) -> str:
+        """The parameters determined at the fitted values though not at the priors, with
+        both verdicts (``""`` when none)."""
+        if not self.revised:
+            return ""
+        figs = {p.name: p.predicted_relative_std for p in self.parameters}
+        return ("Determined at the fitted values (the check before fitting is local, at the "
+                "priors, with an assumed residual level; taken again at the fit with its own "
+                "residual): " + "; ".join(
+                    f"{n} (predicted relative std {100 * figs[n]:.3g} % at the fit; at the "
+                    f"priors: {why})" for n, why in self.revised.items()) + ".")
 
 
 def _unused_input(name: str, cols: Sequence[Array], desc: Description) -> str:
@@ -354,7 +381,9 @@ def _influence(model: OEModel, theta: Array, segs: Sequence[Segment], w: Array,
 
 
 def check(desc: Description, segments: Sequence[Segment],
-          experiments: Sequence[ExperimentSpec] | None = None) -> Identifiability:
+          experiments: Sequence[ExperimentSpec] | None = None,
+          at: Mapping[str, float] | None = None,
+          level: float | None = None) -> Identifiability:
     """Which baseline parameters ``segments`` (the estimation data) determine (module docstring).
 
     Args:
@@ -362,11 +391,19 @@ def check(desc: Description, segments: Sequence[Segment],
         segments: estimation segments.
         experiments: the parameter-pattern -> experiment table (default: the description's
             ``experiments``; without a matching row the advice is generic).
+        at: parameter values (by name) to take the Fisher rule and the influences at instead
+            of the priors (the fitted values: :func:`at_fit`); a parameter it lacks stays at
+            its prior.
+        level: the residual level [output standard deviations] in place of the assumed one
+            (the fitted model's own: :func:`at_fit`).
     """
     table = desc.experiments if experiments is None else tuple(experiments)
     effects = desc.make_model_effects()
     model = OEModel(desc.structure, effects)
     prior = model.initial()
+    if at is not None:
+        prior = np.array([float(at.get(n, v)) for n, v in zip(model.names, prior,
+                                                              strict=True)])
     n_samples = sum(s.n for s in segments)
     q = max(1, desc.preprocess.fit_decimate, math.ceil(n_samples / MAX_SAMPLES))
     segs = [decimate(s, q) for s in segments] if q > 1 else list(segments)
@@ -375,7 +412,8 @@ def check(desc: Description, segments: Sequence[Segment],
     # the sensor floor of the outputs (first difference), in output standard deviations
     floor = max((noise_floor([s.y[:, j] for s in segments]).floor_rms / float(w[j])
                  for j in range(model.ny)), default=0.0)
-    sigma = max(RESIDUAL_LEVEL, floor if math.isfinite(floor) else 0.0)
+    sigma = (max(RESIDUAL_LEVEL, floor if math.isfinite(floor) else 0.0) if level is None
+             else level)
     # rule 1: an effect whose every input is unused is removed (fixed at its prior)
     owner: dict[str, str] = {}
     unused: dict[str, tuple[str, str]] = {}  # parameter -> (reason, input)
@@ -398,7 +436,8 @@ def check(desc: Description, segments: Sequence[Segment],
     off = model.n_struct
     for eff in effects:
         k = len(eff.params)
-        if eff.label() not in removed:
+        if eff.label() not in removed and (at is None
+                                           or not all(s.name in at for s in eff.params)):
             theta[off: off + k] = probe_values(eff, view)
         off += k
     J = _sensitivities(model, prior, segs, w)
@@ -450,9 +489,48 @@ def check(desc: Description, segments: Sequence[Segment],
         out.append(ParameterCheck(name=name, prior=float(prior[i]), determined=det,
                                   predicted_relative_std=rs, sensitivity=float(sens[i]),
                                   reason=why, experiment=cmd, purpose=purpose, effect=label,
-                                  fixed=fixed, advice_from=source, probe=probe))
+                                  fixed=fixed, advice_from=source, probe=probe, kind=kind))
     return Identifiability(parameters=out, removed_effects=removed, residual_level=sigma,
                            samples=sum(s.n for s in segs), influence=influence)
+
+
+def at_fit(pre: Identifiability, desc: Description, segments: Sequence[Segment],
+           values: Mapping[str, float], level: float) -> Identifiability:
+    """``pre`` (the check at the priors) with the Fisher rule taken again at the fitted
+    ``values`` and the fit's own residual ``level``: a parameter the priors left in a null or
+    weak direction gets the verdict at the fit (figure, reason and advice); one the fitted
+    model determines has its reason at the priors in ``revised``. Before fitting the rule is
+    local and its level a guess: at a prior where the model degenerates (a scale-only
+    description with every prior 1, where the two-mass drive's zeros cancel its mode) it
+    reports null directions the optimum does not have, and the first-difference floor of an
+    output sampled coarsely against its dynamics (a few hundred samples at 50 Hz) counts the
+    signal's own steps as noise. The data rules (an unused input, an effect the recording
+    never engages) stand; ``pre`` itself when it flagged nothing by the Fisher rule.
+
+    Args:
+        pre: :func:`check` of ``desc`` on ``segments`` at the priors.
+        desc: the description the fit ran (after :func:`apply`).
+        segments: the estimation segments.
+        values: the fitted parameters by name (the final model's; only the baseline
+            model's are used).
+        level: the fitted model's residual on ``segments`` [output standard deviations]: the
+            largest over the outputs of its RMS over the output's standard deviation.
+    """
+    fisher = {p.name for p in pre.undetermined if p.kind in ("null", "weak")}
+    if not fisher:
+        return pre
+    post = {p.name: p for p in check(desc, segments, at=values, level=level).parameters}
+    params: list[ParameterCheck] = []
+    revised: dict[str, str] = {}
+    for p in pre.parameters:
+        q = post.get(p.name)
+        if p.name in fisher and q is not None:
+            params.append(replace(q, prior=p.prior))  # the verdict and advice at the fit
+            if q.determined:
+                revised[p.name] = p.reason
+        else:
+            params.append(p)
+    return replace(pre, parameters=params, revised=revised)
 
 
 def apply(desc: Description, result: Identifiability) -> Description:

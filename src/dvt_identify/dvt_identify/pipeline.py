@@ -246,6 +246,13 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         result = identify(est, val, desc, cfg, say, check=chk)
     result.selection = select_on
     result.data_warnings = data_warnings
+    # the Fisher rule is local: taken again at the fitted values (identifiability.at_fit)
+    result.identifiability = identifiability.at_fit(
+        chk, desc, est, result.final.parameters(),
+        max(1.0 - f / 100.0 for f in result.final.est.fit_percent))
+    if result.identifiability.revised:
+        print(f"[dvt-identify] check: {result.identifiability.revised_line()}",
+              file=sys.stderr, flush=True)
     test: list[Segment] = []
     if test_bags:  # read only now: every choice is made
         _, test = _read([], test_bags, desc, data_warnings)

@@ -98,7 +98,11 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
     if chk:  # first: what the recording does not determine, what is fixed or still fitted
         lines += ["## Is this recording enough? (check before fitting)", ""]
         und = [q for q in chk["parameters"] if not q["determined"]]
-        if not und:
+        if not und and chk.get("determined_at_fit"):
+            lines.append("At the fitted values the recording determines every parameter of "
+                         "the baseline model; at the priors the check found some undetermined "
+                         "(below).")
+        elif not und:
             lines.append("The recording determines every parameter of the baseline model.")
         else:
             fixed = [q["name"] for q in und if q["fixed_at_prior"]]
@@ -119,6 +123,16 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
                 lines.append(f"| {q['name']} | {_f(q['prior'], 6)} | {prs_text} | "
                              f"{q['reason']} | {'yes' if q['fixed_at_prior'] else 'no'} | "
                              f"{exp} |")
+        revised = chk.get("determined_at_fit") or {}
+        if revised:  # the Fisher rule taken again at the fitted values
+            figs = {q["name"]: q["predicted_relative_std"] for q in chk["parameters"]}
+            lines += ["", "**Determined at the fitted values** (the check before fitting is "
+                      "local, at the priors, with an assumed residual level; taken again at "
+                      "the fit with its own residual):", "",
+                      "| parameter | predicted relative std at the fit | at the priors |",
+                      "|---|---|---|"]
+            lines += [f"| {n} | {_f(100 * figs[n], 3)} % | {why} |"
+                      for n, why in revised.items()]
         lines.append("")
     b, f = rep["baseline"], rep["final"]
     lv = (lr or {}).get("validation") if lr else None
