@@ -43,13 +43,14 @@ from dvt_identify.errors import FitError
 from dvt_identify.fitrate import (
     MIN_FIT_SAMPLES,
 )
-from dvt_identify.fitstarts import StartPoints, _x0_guess
+from dvt_identify.fitstarts import StartPoints, _x0_guess, x0_guesses
 from dvt_identify.parallel import fork_map
 from dvt_identify.sensitivity import simulate_sens
 from dvt_identify.simulation import DivergedError, OEModel, zoh_decimate
 from dvt_identify.streamls import Block, Factored, dense, dense_ok
 from dvt_identify.structures import PENALTY
 from dvt_identify.uncertainty import sandwich_by_segment, sandwich_covariance
+from dvt_identify.unfold import unfold
 
 Array = NDArray[np.float64]
 Progress = Callable[[str], None]
@@ -304,24 +305,35 @@ class OEFit(StartPoints):
         n = max(1, min(self.init_window or seg.n, seg.n))
         part = seg if n >= seg.n else seg.rows(0, n)
         w = self.weights_ if hasattr(self, "weights_") else self._output_weights([seg])
-        x0 = np.asarray(_x0_guess(seg, m) if guess is None else guess, dtype=float).copy()
         target = (part.y / w).ravel()
-        for _ in range(max(1, iterations)):
-            try:
-                with np.errstate(all="ignore"):
-                    _, yb, S = simulate_sens(m, theta, part, x0, (), True)
-            except (DivergedError, np.linalg.LinAlgError, ValueError, OverflowError):
-                break
-            base = (yb / w).ravel()
-            J = (S / w[None, :, None]).reshape(base.size, m.nx)
-            r = target - base
-            if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
-                break
-            step, *_ = np.linalg.lstsq(J, r, rcond=1e-10)
-            x0 = x0 + step
-            if float(np.max(np.abs(step))) <= 1e-12 * max(1.0, float(np.max(np.abs(x0)))):
-                break
-        return x0
+        starts = x0_guesses(seg, m) if guess is None else [guess]
+        best: tuple[float, Array] = (math.inf, np.asarray(starts[0], dtype=float))
+        # an output read sign-blind: from either sign of its first value, the better one
+        for start in starts:
+            x0 = np.asarray(start, dtype=float).copy()
+            for _ in range(max(1, iterations)):
+                try:
+                    with np.errstate(all="ignore"):
+                        _, yb, S = simulate_sens(m, theta, part, x0, (), True)
+                except (DivergedError, np.linalg.LinAlgError, ValueError, OverflowError):
+                    break
+                base = (yb / w).ravel()
+                J = (S / w[None, :, None]).reshape(base.size, m.nx)
+                r = target - base
+                if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
+                    break
+                step, *_ = np.linalg.lstsq(J, r, rcond=1e-10)
+                x0 = x0 + step
+                if float(np.max(np.abs(step))) <= 1e-12 * max(1.0, float(np.max(np.abs(x0)))):
+                    break
+            if len(starts) == 1:
+                return x0
+            with np.errstate(all="ignore"):
+                r = target - (m.simulate(theta, part, x0) / w).ravel()
+            cost = float(r @ r) if np.all(np.isfinite(r)) else math.inf
+            if cost < best[0]:
+                best = (cost, x0)
+        return best[1]
 
     def _usable(self, theta: Array) -> bool:
         """A start is usable when its linear part is finite, not unstable (eigenvalues of A with
@@ -697,9 +709,42 @@ class OEFit(StartPoints):
 
         def jac(x0: Array) -> Array:
             return self._jacobian(th, [part], [x0], w, params=False)
-        r = least_squares(fun, _x0_guess(seg, self.model), jac=jac, method="trf",
-                          x_scale="jac")
-        return np.asarray(r.x, float)
+        # an output read sign-blind: from either sign of its first value, and from the
+        # states that fit it unfolded, the best one
+        fits = [least_squares(fun, x0, jac=jac, method="trf", x_scale="jac")
+                for x0 in [*x0_guesses(seg, self.model), *self._unfolded_x0(th, part)]]
+        return np.asarray(min(fits, key=lambda r: float(r.cost)).x, float)
+
+    def _unfolded_x0(self, theta: Array, seg: Segment) -> list[Array]:
+        """Initial-state starts (each (nx,)) for a model that reads outputs sign-blind: with
+        those outputs unfolded (:func:`dvt_identify.unfold.unfold`, either overall sign) the
+        model without its sign-blind maps is fitted in its initial state alone (no ``|y|``
+        between the state and the data: one basin where the map has one per sign pattern of
+        the free response). Empty for a model without such an output."""
+        m = self.model
+        blind = [(k, j) for k, e in enumerate(m.effects) if (j := e.blind_output()) is not None]
+        if not blind:
+            return []
+        bare = np.asarray(theta, float).copy()
+        for k, _ in blind:
+            bare[m.effect_slice(k)] = [p.null for p in m.effects[k].params]
+        segs = [seg]
+        for _, j in blind:
+            segs = unfold(segs, j)
+        w = self.weights_
+        cols = [j for _, j in blind]
+        out = []
+        for sign in (1.0, -1.0):
+            target = np.array(segs[0].y, dtype=float, copy=True)
+            target[:, cols] *= sign
+
+            def fun(x0: Array, target: Array = target) -> Array:
+                with np.errstate(all="ignore"):
+                    r = ((target - m.simulate(bare, seg, x0)) / w).ravel()
+                return np.where(np.isfinite(r), r, 1e6)
+            out.append(np.asarray(least_squares(fun, _x0_guess(seg, m), method="trf",
+                                                x_scale="jac").x, float))
+        return out
 
     def predict(self, seg: Segment, x0: Array | None = None) -> Array:
         """Simulated outputs of ``seg`` (N, ny); ``x0`` estimated when not given."""

@@ -49,6 +49,22 @@ def _x0_guess(seg: Segment, model: OEModel | None = None) -> Array:
     return y0 if model is None else initial_state(model.structure, y0)
 
 
+def x0_guesses(seg: Segment, model: OEModel) -> list[Array]:
+    """Initial-state starts (each (nx,)): :func:`_x0_guess`, and for each output the model
+    reads sign-blind (:meth:`Effect.blind_output`) the same with that output's first value
+    negated: ``|y|`` does not tell which sign the state starts with, and a local fit from the
+    wrong one stays there (the free response runs mirrored until it decays)."""
+    y0 = np.asarray(seg.y[: min(3, seg.n)].mean(axis=0), dtype=float)
+    out = [initial_state(model.structure, y0)]
+    for e in model.effects:
+        j = e.blind_output()
+        if j is not None and y0[j] != 0.0:
+            flipped = y0.copy()
+            flipped[j] = -flipped[j]
+            out.append(initial_state(model.structure, flipped))
+    return out
+
+
 class StartPoints:
     """The start guard's methods of :class:`~dvt_identify.fit.OEFit` (which sets the
     attributes below and implements the stubs)."""

@@ -10,6 +10,7 @@ turns the reference into starts of the physical fit (:mod:`dvt_identify.startmap
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,11 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dvt_identify.data import Segment
+from dvt_identify.effects.base import SegmentView
 from dvt_identify.errors import DataError, FitError
 from dvt_identify.metrics import Figures, figures
 from dvt_identify.reference import LinearReference
 from dvt_identify.simulation import OEModel, zoh_decimate
 from dvt_identify.startmap import MappedStart, frequency_response_starts
+from dvt_identify.unfold import unfold
 
 Array = NDArray[np.float64]
 MAX_SAMPLES = 6000
@@ -159,3 +162,39 @@ def mapped_starts(model: OEModel, ref: LinearReference, fit_segs: Sequence[Segme
         th[:n] = s.theta
         out.append(MappedStart(th, s.mismatch, s.origin))
     return out
+
+
+def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
+                    max_order: int) -> list[Array]:
+    """Start vectors of ``model`` when an effect of it reads an output sign-blind
+    (:meth:`Effect.blind_output`): the structure mapped from a linear reference fitted to
+    ``fit_segs`` with those outputs unfolded (:func:`dvt_identify.unfold.unfold`), every
+    effect at its initial value except a sign-blind map at its probe (the map itself, ``|y|``);
+    empty when no output is read sign-blind or no reference could be fitted (its order chosen
+    on the last part of each segment, as with cross-validated selection)."""
+    blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
+    if not blind:
+        return []
+    segs = list(fit_segs)
+    for _, j in blind:
+        segs = unfold(segs, j)
+    try:
+        ref = fit_reference(segs, segs, 0, max_order, seed, True)
+    except (FitError, DataError):
+        return []
+    # the unfolded sign is open overall: the reference and its mirror (those outputs negated)
+    mirror = copy.copy(ref.model)
+    mirror.C_ = ref.model.C_.copy()
+    mirror.C_[[j for _, j in blind]] *= -1.0
+    out = []
+    for start in [*mapped_starts(model, ref.model, segs, seed),
+                  *mapped_starts(model, mirror, segs, seed)]:
+        th = start.theta.copy()
+        for k, _ in blind:
+            eff = model.effects[k]
+            sl = model.effect_slice(k)
+            probe = dict(eff.variants(SegmentView.of(segs[0]))[0][1])
+            th[sl] = [probe.get(p.name, th[sl.start + i]) for i, p in enumerate(eff.params)]
+        out.append(th)
+    return out
+

@@ -84,7 +84,7 @@ from dvt_identify.errors import DataError, FitError
 from dvt_identify.fit import OEFit, Progress
 from dvt_identify.fitrate import fit_segments
 from dvt_identify.identifiability import Identifiability
-from dvt_identify.linref import ReferenceStage, fit_reference, mapped_starts
+from dvt_identify.linref import ReferenceStage, fit_reference, mapped_starts, unfolded_starts
 from dvt_identify.metrics import Figures
 from dvt_identify.parallel import fork_map
 from dvt_identify.resid import STRUCTURED_SHARE
@@ -221,6 +221,11 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
             if reference.starts:
                 say("structure starts mapped from the linear reference: "
                     + ", ".join(f"mismatch {s.mismatch:.3g}" for s in reference.starts))
+    # an output read sign-blind: starts from a reference on it unfolded (on |y| it has no modes)
+    blind = unfolded_starts(base_model, fit_segs, cfg.seed, cfg.reference_max_order)
+    if blind:
+        say(f"structure starts mapped from the sign-blind output(s) unfolded: {len(blind)}")
+        guesses.extend(blind)
     # the fit runs the guess, each usable structure guess, then random starts up to cfg.starts
     say(f"baseline fit: {len(est)} estimation segment(s), {sum(s.n for s in fit_segs)} samples, "
         + (f"up to {max(cfg.starts, 1 + len(guesses))} start(s) (the guess, "
@@ -519,6 +524,8 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
         prior = theta0.copy()
         prior[: old.model.n_struct] = [p.initial for p in old.model.specs[: old.model.n_struct]]
         theta0, extra = prior, [theta0]
+        # a sign-blind map: also the structure mapped from the output unfolded
+        extra.extend(unfolded_starts(model, fit_segs, cfg.seed, cfg.reference_max_order))
     if bent:
         extra.extend(_prior_starts(old.model, sc.effect, fit_segs[0]))
     if cfg.refit_starts > 1:

@@ -380,6 +380,11 @@ class Effect:
         """Extra holding capacity at rest added to the member's dry friction."""
         return 0.0
 
+    def blind_output(self) -> int | None:
+        """The output this effect reads without its sign (a sign-blind sensor), or ``None``:
+        a fit's starts then come from that output unfolded (:mod:`dvt_identify.unfold`)."""
+        return None
+
     def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
         """Transformed outputs, shape (N, ny), or ``None``."""
         return None

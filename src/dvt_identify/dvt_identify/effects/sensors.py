@@ -275,6 +275,9 @@ class SignBlindSensor(Effect):
                                                       "1"),),
                    index=ctx.output_index(), options=dict(ctx.options))
 
+    def blind_output(self) -> int | None:
+        return self.index
+
     def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
         b = float(p[0])
         if b == 0.0:
