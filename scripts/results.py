@@ -14,7 +14,9 @@ randomised clean plants of tests/test_false_effects.py), ``detector`` (the chang
 false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``secant`` (the
 compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
 (hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``dry_step``
-(the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``all``.
+(the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``belt``
+and ``belt_friction`` (random belt drives read by a sign-blind pulse counter, without and with a
+Coulomb friction on the motor, ``scripts/belt_draws.py``), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -138,6 +140,8 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
+    "belt": _script("scripts/belt_draws.py", "--json"),
+    "belt_friction": _script("scripts/belt_draws.py", "--friction", "0.12", "--json"),
 }
 
 
@@ -251,10 +255,22 @@ def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
             "the change")
 
 
+def _row_belt(f: dict[str, Any]) -> tuple[str, str]:
+    s = f.get("summary") or {}
+    n = s.get("drives")
+    lo, med = (s.get("test_fit_percent_min_median") or [None, None])[:2]
+    return ("random belt drives read by a sign-blind pulse counter (300 + 200 samples at 50 Hz "
+            "per record, every prior 1; `--select-on cv`, the last 200 samples as test)",
+            f"named as drawn (the map, nothing else) {_n(s.get('named_as_drawn'))} of {_n(n)}; "
+            f"test fit above 95 % {_n(s.get('test_fit_above_95'))} of {_n(n)} (min "
+            f"{_n(lo, '.1f')} %, median {_n(med, '.1f')} %); better than the linear reference "
+            f"{_n(s.get('better_than_reference'))} of {_n(n)}")
+
+
 ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
     "emps": _row_emps, "identify": _row_identify, "hours": _row_hours, "loop": _row_loop,
     "model": _row_model, "false_effects": _row_false, "compare": _row_compare,
-    "demo": _row_demo, "detector": _row_detector}
+    "demo": _row_demo, "detector": _row_detector, "belt": _row_belt}
 
 
 def table() -> str:

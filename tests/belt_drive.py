@@ -78,21 +78,24 @@ def command(n: int, amplitude: float, rng: np.random.Generator) -> Array:
     return u
 
 
-def records(drive: str, seed: int, n: int = 300, friction: float = 0.0
+def records(drive: str | dict[str, float], seed: int, n: int = 300, friction: float = 0.0
             ) -> tuple[list[Segment], list[Array]]:
     """One record per amplitude of :data:`AMPLITUDES` (``n`` samples each, seeds ``seed``,
-    ``seed + 1``, ...): the segments as read (``|w| + noise``) and the true signed pulley
-    speeds; ``friction``: a Coulomb friction [N m] on the motor."""
+    ``seed + 1``, ...) of a drive of :data:`DRIVES` (or its parameters): the segments as read
+    (``|w| + noise``) and the true signed pulley speeds; ``friction``: a Coulomb friction
+    [N m] on the motor."""
     desc = description()
     st = desc.structure
-    theta = [DRIVES[drive][p.name] for p in st.params]
+    values = DRIVES[drive] if isinstance(drive, str) else drive
+    name = drive if isinstance(drive, str) else "drive"
+    theta = [values[p.name] for p in st.params]
     truth = OEModel(st, [])
     segs, speeds = [], []
     for k, amp in enumerate(AMPLITUDES):
         rng = np.random.default_rng(seed + k)
         t = np.arange(n) / RATE
         u = command(n, amp, rng)
-        blank = make_segment(f"{drive}-{k}", t, u, np.zeros((n, 1)), desc.input_names,
+        blank = make_segment(f"{name}-{k}", t, u, np.zeros((n, 1)), desc.input_names,
                              desc.output_names)
         model, th = truth, np.array(theta)
         if friction:
@@ -115,3 +118,17 @@ def write_npz(seg: Segment, path: Path) -> Path:
 def write_description(path: Path) -> Path:
     path.write_text(yaml.safe_dump(spec(), sort_keys=False))
     return path
+
+
+def draw(rng: np.random.Generator) -> dict[str, float]:
+    """A random drive: inertias log-uniform (motor 0.01-0.1, pulley 0.005-0.05 kg m^2), the
+    belt mode uniform over 1-6 Hz with a damping ratio of 0.03-0.2, the motor's own pole
+    (``dm / (Jm + Jp)``) uniform over 0.5-5 1/s."""
+    jm = float(np.exp(rng.uniform(np.log(0.01), np.log(0.1))))
+    jp = float(np.exp(rng.uniform(np.log(0.005), np.log(0.05))))
+    red = jm * jp / (jm + jp)
+    w = 2.0 * np.pi * float(rng.uniform(1.0, 6.0))
+    zeta = float(rng.uniform(0.03, 0.2))
+    return {"Jm": jm, "Jp": jp, "k": w * w * red, "c": 2.0 * zeta * w * red,
+            "dm": float(rng.uniform(0.5, 5.0)) * (jm + jp)}
+

@@ -1,0 +1,105 @@
+"""Random belt drives read by a sign-blind pulse counter, identified as a new user would.
+
+For each seed: a drive drawn by ``tests/belt_drive.py`` ``draw`` (inertias, belt mode 1-6 Hz,
+damping ratio, the motor's pole), three 500-sample records at 50 Hz (commands of amplitude 0.5,
+1 and 1.5), optionally a Coulomb friction on the motor; the first 300 samples of each record
+are estimation bags, the last 200 test bags; ``dvt_identify.pipeline.run`` with the belt
+drive's scale-only description (every prior 1), ``--select-on cv``. Each row: the drive, the
+accepted effects, the test fit of the physical model and of the linear reference, and each
+parameter's error in reported standard deviations.
+
+Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F] [--json]``
+(about 10 s per drive); ``scripts/results.sh belt`` writes ``docs/results/belt.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+SEEDS = tuple(range(1, 11))
+FRICTION = 0.0
+
+
+def one(seed: int, friction: float, tmp: Path) -> dict[str, Any]:
+    """Draw, record and identify one drive (module docstring); its row."""
+    import belt_drive
+
+    from dvt_identify.data import JointStateSeries, Segment, write_jointstate_bag
+    from dvt_identify.pipeline import run
+
+    def bag(path: Path, seg: Segment) -> str:
+        stamps = (10**9 + np.round(seg.t * 1e9)).astype(np.int64)
+        return str(write_jointstate_bag(path, {
+            "/belt/joint_states": JointStateSeries(stamps, ("pulley",), velocity=seg.y[:, :1]),
+            "/belt/drive": JointStateSeries(stamps, ("motor",), effort=seg.u[:, :1])}))
+
+    drive = belt_drive.draw(np.random.default_rng(seed))
+    segs, _ = belt_drive.records(drive, seed=100 * seed, n=500, friction=friction)
+    work = tmp / f"drive-{seed}"
+    est = [bag(work / f"est{k}", s.rows(0, 300)) for k, s in enumerate(segs)]
+    test = [bag(work / f"test{k}", s.rows(300, 500, from_zero=True))
+            for k, s in enumerate(segs)]
+    desc = belt_drive.write_description(work / "belt-drive.yaml")
+    t0 = time.monotonic()
+    r = run(est, [], work / "report", description=str(desc), select_on="cv", test_bags=test,
+            quiet=True, plots=False, series=False)
+    seconds = time.monotonic() - t0
+    values, std = r.final.fit.parameters(), r.final.fit.parameter_std()
+    truth = {**drive, **({"Fc": friction} if friction else {})}
+    tf = r.test
+    return {"seed": seed, "drive": drive, "friction": friction,
+            "accepted": [d.score.label for d in r.accepted],
+            "test_fit_percent": float(tf.final.fit_percent[0]),
+            "reference_test_fit_percent": (float(tf.reference.fit_percent[0])
+                                           if tf.reference is not None else None),
+            "error_in_std": {k: (values[k] - v) / std[k] if std.get(k) else None
+                             for k, v in truth.items() if k in values},
+            "relative_error_percent": {k: 100.0 * (values[k] / v - 1.0)
+                                       for k, v in truth.items() if k in values},
+            "seconds": round(seconds, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    ap.add_argument("--friction", type=float, default=FRICTION,
+                    help="Coulomb friction on the motor [N m] (default 0)")
+    ap.add_argument("--json", action="store_true", help="print one JSON document")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = [one(s, args.friction, Path(tmp)) for s in args.seeds]
+    good = [r for r in rows if r["accepted"] == ["sign_blind@w_pulley"] + (
+        ["coulomb_friction@motor"] if args.friction else [])]
+    summary = {"drives": len(rows), "named_as_drawn": len(good),
+               "test_fit_above_95": sum(r["test_fit_percent"] > 95.0 for r in rows),
+               "better_than_reference": sum(
+                   r["reference_test_fit_percent"] is not None
+                   and r["test_fit_percent"] > r["reference_test_fit_percent"] for r in rows),
+               "test_fit_percent_min_median": [
+                   float(np.min([r["test_fit_percent"] for r in rows])),
+                   float(np.median([r["test_fit_percent"] for r in rows]))]}
+    if args.json:
+        print(json.dumps({"summary": summary, "rows": rows}, indent=2, default=float))
+        return 0
+    for r in rows:
+        print(f"seed {r['seed']}: accepted {', '.join(r['accepted']) or 'none'}; test fit "
+              f"{r['test_fit_percent']:.2f} % (reference {r['reference_test_fit_percent']}); "
+              + ", ".join(f"{k} {v:+.2g} std" for k, v in r["error_in_std"].items()
+                          if v is not None))
+    print(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
