@@ -54,8 +54,8 @@ def x0_guesses(seg: Segment, model: OEModel) -> list[Array]:
     reads sign-blind (:meth:`Effect.blind_output`) the same with that output's first value
     negated: ``|y|`` does not tell which sign the state starts with, and a local fit from the
     wrong one stays there (the free response runs mirrored until it decays)."""
+    out = [_x0_guess(seg, model)]
     y0 = np.asarray(seg.y[: min(3, seg.n)].mean(axis=0), dtype=float)
-    out = [initial_state(model.structure, y0)]
     for e in model.effects:
         j = e.blind_output()
         if j is not None and y0[j] != 0.0:

@@ -197,4 +197,3 @@ def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
             th[sl] = [probe.get(p.name, th[sl.start + i]) for i, p in enumerate(eff.params)]
         out.append(th)
     return out
-
