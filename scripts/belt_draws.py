@@ -31,7 +31,7 @@ SEEDS = tuple(range(1, 11))
 FRICTION = 0.0
 
 
-def one(seed: int, friction: float, tmp: Path) -> dict[str, Any]:
+def one(seed: int, friction: float, tmp: Path, init_window: int = 0) -> dict[str, Any]:
     """Draw, record and identify one drive (module docstring); its row."""
     import belt_drive
 
@@ -53,12 +53,12 @@ def one(seed: int, friction: float, tmp: Path) -> dict[str, Any]:
     desc = belt_drive.write_description(work / "belt-drive.yaml")
     t0 = time.monotonic()
     r = run(est, [], work / "report", description=str(desc), select_on="cv", test_bags=test,
-            quiet=True, plots=False, series=False)
+            quiet=True, plots=False, series=False, init_window=init_window)
     seconds = time.monotonic() - t0
     values, std = r.final.fit.parameters(), r.final.fit.parameter_std()
     truth = {**drive, **({"Fc": friction} if friction else {})}
     tf = r.test
-    return {"seed": seed, "drive": drive, "friction": friction,
+    return {"seed": seed, "drive": drive, "friction": friction, "init_window": init_window,
             "accepted": [d.score.label for d in r.accepted],
             "test_fit_percent": float(tf.final.fit_percent[0]),
             "reference_test_fit_percent": (float(tf.reference.fit_percent[0])
@@ -75,10 +75,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     ap.add_argument("--friction", type=float, default=FRICTION,
                     help="Coulomb friction on the motor [N m] (default 0)")
+    ap.add_argument("--init-window", type=int, default=0,
+                    help="initial states from the first N samples of every record, as "
+                         "dvt-identify --init-window (default 0: estimated)")
     ap.add_argument("--json", action="store_true", help="print one JSON document")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        rows = [one(s, args.friction, Path(tmp)) for s in args.seeds]
+        rows = [one(s, args.friction, Path(tmp), args.init_window) for s in args.seeds]
     good = [r for r in rows if r["accepted"] == ["sign_blind@w_pulley"] + (
         ["coulomb_friction@motor"] if args.friction else [])]
     summary = {"drives": len(rows), "named_as_drawn": len(good),

@@ -16,7 +16,8 @@ compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``
 (hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``dry_step``
 (the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``belt``
 and ``belt_friction`` (random belt drives read by a sign-blind pulse counter, without and with a
-Coulomb friction on the motor, ``scripts/belt_draws.py``), ``all``.
+Coulomb friction on the motor, ``scripts/belt_draws.py``), ``belt_window`` (the same drives,
+every initial state from its record's first 10 samples), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -142,6 +143,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
     "belt": _script("scripts/belt_draws.py", "--json"),
     "belt_friction": _script("scripts/belt_draws.py", "--friction", "0.12", "--json"),
+    "belt_window": _script("scripts/belt_draws.py", "--init-window", "10", "--json"),
 }
 
 

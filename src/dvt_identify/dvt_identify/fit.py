@@ -43,8 +43,9 @@ from dvt_identify.errors import FitError
 from dvt_identify.fitrate import (
     MIN_FIT_SAMPLES,
 )
-from dvt_identify.fitstarts import StartPoints, _x0_guess, x0_guesses
+from dvt_identify.fitstarts import StartPoints, _x0_guess, window_sign_starts, x0_guesses
 from dvt_identify.parallel import fork_map
+from dvt_identify.resid import robust_white_floor
 from dvt_identify.sensitivity import simulate_sens
 from dvt_identify.simulation import DivergedError, OEModel, zoh_decimate
 from dvt_identify.streamls import Block, Factored, dense, dense_ok
@@ -307,8 +308,11 @@ class OEFit(StartPoints):
         w = self.weights_ if hasattr(self, "weights_") else self._output_weights([seg])
         target = (part.y / w).ravel()
         starts = x0_guesses(seg, m) if guess is None else [guess]
+        if guess is None:  # the window alone: nothing after it sets the state
+            starts += window_sign_starts(m, theta, part, w, self._blind_noise(part))
         best: tuple[float, Array] = (math.inf, np.asarray(starts[0], dtype=float))
-        # an output read sign-blind: from either sign of its first value, the better one
+        # an output read sign-blind: from either sign of its first value and from the states
+        # of the window's best sign patterns, the best one
         for start in starts:
             x0 = np.asarray(start, dtype=float).copy()
             for _ in range(max(1, iterations)):
@@ -334,6 +338,16 @@ class OEFit(StartPoints):
             if cost < best[0]:
                 best = (cost, x0)
         return best[1]
+
+    def _blind_noise(self, seg: Segment) -> list[float]:
+        """Robust white-noise std of each output of ``seg`` the model reads sign-blind (of
+        ``|y|``, as :func:`dvt_identify.unfold.unfold` takes it), 0 for the others, (ny,)."""
+        out = [0.0] * seg.y.shape[1]
+        for e in self.model.effects:
+            j = e.blind_output()
+            if j is not None:
+                out[j] = robust_white_floor([np.abs(np.asarray(seg.y[:, j], float))])
+        return out
 
     def _usable(self, theta: Array) -> bool:
         """A start is usable when its linear part is finite, not unstable (eigenvalues of A with

@@ -65,6 +65,69 @@ def x0_guesses(seg: Segment, model: OEModel) -> list[Array]:
     return out
 
 
+WINDOW_PATTERNS = 256
+"""Most sign patterns :func:`window_sign_starts` enumerates in a window (beyond: none)."""
+WINDOW_SIGN_STARTS = 2
+"""How many of the best-fitting patterns' states :func:`window_sign_starts` returns."""
+
+
+def window_sign_starts(model: OEModel, theta: Array, part: Segment, w: Array,
+                       noise: Sequence[float]) -> list[Array]:
+    """Initial-state starts (each (nx,)) for a short window ``part`` of a model that reads
+    outputs sign-blind (:meth:`Effect.blind_output`); empty without one.
+
+    ``|y|`` hides where the output changes sign inside the window, and a local fit from
+    either sign of its first value keeps that sign through the window (measured on belt drives
+    with a 10-sample window at 50 Hz: test fits 73-94 % where the estimated state gave 96 %).
+    The sign may change only next to a dip of ``|y|`` (:func:`dvt_identify.unfold.cuts`, the
+    window's ends included, with the output's robust white-noise std ``noise[j]``); every pattern of
+    signs over those pieces (at most :data:`WINDOW_PATTERNS`) is a signed target for the model
+    without its sign-blind maps, which is affine in its initial state: the state of each
+    pattern by linear least squares (weighted outputs ``w``, (ny,)), and the states of the
+    :data:`WINDOW_SIGN_STARTS` patterns that fit best are returned (the caller polishes and
+    chooses them on the model itself)."""
+    from dvt_identify.sensitivity import simulate_sens
+    from dvt_identify.simulation import DivergedError
+    from dvt_identify.unfold import _bounds, _signal, cuts
+
+    blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
+    if not blind or part.n < 2:
+        return []
+    bare = np.asarray(theta, float).copy()
+    for k, _ in blind:
+        bare[model.effect_slice(k)] = [q.null for q in model.effects[k].params]
+    cols = sorted({j for _, j in blind})
+    y = np.asarray(part.y, float)
+    pieces = {j: _bounds(cuts(np.abs(y[:, j]), float(noise[j]), ends=True), part.n)
+              for j in cols}
+    count = [len(b) - 1 for b in pieces.values()]
+    if 2 ** sum(count) > WINDOW_PATTERNS:
+        return []
+    try:
+        with np.errstate(all="ignore"):
+            _, yb, S = simulate_sens(model, bare, part, np.zeros(model.nx), (), True)
+    except (DivergedError, np.linalg.LinAlgError, ValueError, OverflowError):
+        return []
+    J = (S / w[None, :, None]).reshape(-1, model.nx)
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(yb))):
+        return []
+    # every pattern at once: targets (P, N * ny), states by the pseudo-inverse
+    codes = np.arange(2 ** sum(count))
+    bits = ((codes[:, None] >> np.arange(sum(count))[None, :]) & 1) * 2.0 - 1.0
+    targets = np.repeat((y / w)[None], codes.size, axis=0)
+    at = 0
+    for j, c in zip(cols, count, strict=True):
+        signs = np.array([_signal(part.n, pieces[j], b) for b in bits[:, at: at + c]])
+        targets[:, :, j] = signs * np.abs(y[:, j]) / w[j]
+        at += c
+    r = targets.reshape(codes.size, -1) - (yb / w).ravel()[None, :]
+    pinv = np.linalg.pinv(J, rcond=1e-10)
+    x0s = r @ pinv.T
+    cost = np.sum((r - x0s @ J.T) ** 2, axis=1)
+    best = np.argsort(cost, kind="stable")[:WINDOW_SIGN_STARTS]
+    return [np.asarray(x0s[i], float) for i in best if np.all(np.isfinite(x0s[i]))]
+
+
 class StartPoints:
     """The start guard's methods of :class:`~dvt_identify.fit.OEFit` (which sets the
     attributes below and implements the stubs)."""

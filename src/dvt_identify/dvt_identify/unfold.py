@@ -52,14 +52,22 @@ LOWPASS_POLE = 0.8
 """Pole of the first guess's low-pass of the inputs (per sample)."""
 
 
-def cuts(y: Array, noise: float) -> list[int]:
+def cuts(y: Array, noise: float, ends: bool = False) -> list[int]:
     """Where the sign may change: the local minima of ``y`` (``|x|`` read) below
-    ``max(CUT_NOISE noise, CUT_SHARE max(y))``, sample indices in order."""
+    ``max(CUT_NOISE noise, CUT_SHARE max(y))``, sample indices in order; with ``ends`` also
+    the first and the last sample when below it and not above their one neighbour (a short
+    window cut off in a dip: the crossing may lie just outside it)."""
     y = np.asarray(y, float)
     thr = max(CUT_NOISE * noise, CUT_SHARE * float(np.max(np.abs(y)) if y.size else 0.0))
     mid = y[1:-1]
     low = (mid <= y[:-2]) & (mid <= y[2:]) & (mid < thr)
-    return [int(i) + 1 for i in np.flatnonzero(low)]
+    out = [int(i) + 1 for i in np.flatnonzero(low)]
+    if ends and y.size >= 2:
+        if y[0] <= y[1] and y[0] < thr:
+            out.insert(0, 0)
+        if y[-1] <= y[-2] and y[-1] < thr:
+            out.append(y.size - 1)
+    return out
 
 
 def _bounds(at: Sequence[int], n: int) -> list[int]:
