@@ -423,6 +423,8 @@ class OEFit(StartPoints):
         Sk = -(S / w[None, :, None]).reshape(seg.y.size, nf + nx)
         if self.init_window > 0:
             nw = min(seg.n, self.init_window) * m.ny
+            if not np.all(np.isfinite(Sk[:nw])):  # LAPACK would stop on it: the penalty
+                return J, np.full(seg.y.size, PENALTY), cols
             dx0 = -np.linalg.lstsq(Sk[:nw, nf:], Sk[:nw, :nf], rcond=1e-10)[0]
             J[:, :nf] = Sk[:, :nf] + Sk[:, nf:] @ dx0
         else:
