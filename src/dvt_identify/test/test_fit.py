@@ -87,3 +87,28 @@ def test_oe_fit_with_coulomb_recovers_friction() -> None:
     assert p["Fc"] == pytest.approx(2.0, rel=0.03)
     assert p["offset"] == pytest.approx(0.5, abs=0.05)
     assert set(fit.parameter_std()) == {"M", "Fv", "Fc", "offset"}
+
+
+def test_window_sensitivities_that_overflow_give_the_penalty_and_print_nothing(
+        monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]) -> None:
+    """With an initialisation window the Jacobian solves the window's sensitivities: when a
+    far start makes them overflow, the block is the penalty (as for a diverged simulation),
+    not a LAPACK call that prints to stdout and stops the start."""
+    from dvt_identify import fit as fit_mod
+    from dvt_identify.structures import PENALTY
+
+    n, dt = 200, 0.01
+    seg = make_segment("s", np.arange(n) * dt, _inputs(n, dt, 0)[:, :1], np.zeros((n, 1)),
+                       ["F"], ["v"])
+    f = OEFit(OEModel(_mech()), init_window=10)
+    theta = np.array([2.0, 1.0])
+    real = fit_mod.simulate_sens
+
+    def overflowing(*args: object, **kwargs: object):
+        x, y, S = real(*args, **kwargs)
+        return x, y, np.full_like(S, np.inf)
+
+    monkeypatch.setattr(fit_mod, "simulate_sens", overflowing)
+    J, r, _ = f._rows(theta, seg, np.zeros(1), np.ones(1), 0)
+    assert np.all(r == PENALTY) and np.all(J == 0.0)
+    assert capfd.readouterr().out == ""
