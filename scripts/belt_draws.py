@@ -8,7 +8,8 @@ drive's scale-only description (every prior 1), ``--select-on cv``. Each row: th
 accepted effects, the test fit of the physical model and of the linear reference, and each
 parameter's error in reported standard deviations.
 
-Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F] [--json]``
+Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F]
+[--init-window N] [--sensor-lag TAU] [--lag-candidate] [--json]``
 (about 10 s per drive); ``scripts/results.sh belt`` writes ``docs/results/belt.json``.
 """
 
@@ -31,7 +32,11 @@ SEEDS = tuple(range(1, 11))
 FRICTION = 0.0
 
 
-def one(seed: int, friction: float, tmp: Path, init_window: int = 0) -> dict[str, Any]:
+LAG_CANDIDATE = {"effect": "sensor_lag", "where": "w_pulley"}
+
+
+def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float = 0.0,
+        lag_candidate: bool = False) -> dict[str, Any]:
     """Draw, record and identify one drive (module docstring); its row."""
     import belt_drive
 
@@ -45,20 +50,22 @@ def one(seed: int, friction: float, tmp: Path, init_window: int = 0) -> dict[str
             "/belt/drive": JointStateSeries(stamps, ("motor",), effort=seg.u[:, :1])}))
 
     drive = belt_drive.draw(np.random.default_rng(seed))
-    segs, _ = belt_drive.records(drive, seed=100 * seed, n=500, friction=friction)
+    segs, _ = belt_drive.records(drive, seed=100 * seed, n=500, friction=friction, lag=lag)
     work = tmp / f"drive-{seed}"
     est = [bag(work / f"est{k}", s.rows(0, 300)) for k, s in enumerate(segs)]
     test = [bag(work / f"test{k}", s.rows(300, 500, from_zero=True))
             for k, s in enumerate(segs)]
-    desc = belt_drive.write_description(work / "belt-drive.yaml")
+    desc = belt_drive.write_description(work / "belt-drive.yaml",
+                                        [LAG_CANDIDATE] if lag_candidate else None)
     t0 = time.monotonic()
     r = run(est, [], work / "report", description=str(desc), select_on="cv", test_bags=test,
             quiet=True, plots=False, series=False, init_window=init_window)
     seconds = time.monotonic() - t0
     values, std = r.final.fit.parameters(), r.final.fit.parameter_std()
-    truth = {**drive, **({"Fc": friction} if friction else {})}
+    truth = {**drive, **({"Fc": friction} if friction else {}), **({"tau": lag} if lag else {})}
     tf = r.test
     return {"seed": seed, "drive": drive, "friction": friction, "init_window": init_window,
+            "sensor_lag": lag, "lag_candidate": lag_candidate,
             "accepted": [d.score.label for d in r.accepted],
             "test_fit_percent": float(tf.final.fit_percent[0]),
             "reference_test_fit_percent": (float(tf.reference.fit_percent[0])
@@ -78,12 +85,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--init-window", type=int, default=0,
                     help="initial states from the first N samples of every record, as "
                          "dvt-identify --init-window (default 0: estimated)")
+    ap.add_argument("--sensor-lag", type=float, default=0.0,
+                    help="the counter read through a first-order filter of this time constant "
+                         "[s] (default 0: none)")
+    ap.add_argument("--lag-candidate", action="store_true",
+                    help="add the sensor_lag candidate to the description")
     ap.add_argument("--json", action="store_true", help="print one JSON document")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        rows = [one(s, args.friction, Path(tmp), args.init_window) for s in args.seeds]
-    good = [r for r in rows if r["accepted"] == ["sign_blind@w_pulley"] + (
-        ["coulomb_friction@motor"] if args.friction else [])]
+        rows = [one(s, args.friction, Path(tmp), args.init_window, args.sensor_lag,
+                    args.lag_candidate) for s in args.seeds]
+    drawn = (["sign_blind@w_pulley"] + (["coulomb_friction@motor"] if args.friction else [])
+             + (["sensor_lag@w_pulley"] if args.sensor_lag else []))
+    good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
     summary = {"drives": len(rows), "named_as_drawn": len(good),
                "test_fit_above_95": sum(r["test_fit_percent"] > 95.0 for r in rows),
                "better_than_reference": sum(

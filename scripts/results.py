@@ -17,7 +17,9 @@ compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``
 (the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``belt``
 and ``belt_friction`` (random belt drives read by a sign-blind pulse counter, without and with a
 Coulomb friction on the motor, ``scripts/belt_draws.py``), ``belt_window`` (the same drives,
-every initial state from its record's first 10 samples), ``all``.
+every initial state from its record's first 10 samples), ``belt_lag`` / ``belt_lag_undeclared``
+/ ``belt_lag_clean`` (the counter read through a 30-ms filter with and without the
+``sensor_lag`` candidate, and the clean drives with it), ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -144,6 +146,10 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "belt": _script("scripts/belt_draws.py", "--json"),
     "belt_friction": _script("scripts/belt_draws.py", "--friction", "0.12", "--json"),
     "belt_window": _script("scripts/belt_draws.py", "--init-window", "10", "--json"),
+    "belt_lag": _script("scripts/belt_draws.py", "--sensor-lag", "0.03", "--lag-candidate",
+                        "--json"),
+    "belt_lag_undeclared": _script("scripts/belt_draws.py", "--sensor-lag", "0.03", "--json"),
+    "belt_lag_clean": _script("scripts/belt_draws.py", "--lag-candidate", "--json"),
 }
 
 

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import Description, parse_description
+from dvt_identify.effects.sensors import first_order_lag
 from dvt_identify.simulation import OEModel
 
 Array = NDArray[np.float64]
@@ -78,12 +79,13 @@ def command(n: int, amplitude: float, rng: np.random.Generator) -> Array:
     return u
 
 
-def records(drive: str | dict[str, float], seed: int, n: int = 300, friction: float = 0.0
-            ) -> tuple[list[Segment], list[Array]]:
+def records(drive: str | dict[str, float], seed: int, n: int = 300, friction: float = 0.0,
+            lag: float = 0.0) -> tuple[list[Segment], list[Array]]:
     """One record per amplitude of :data:`AMPLITUDES` (``n`` samples each, seeds ``seed``,
     ``seed + 1``, ...) of a drive of :data:`DRIVES` (or its parameters): the segments as read
     (``|w| + noise``) and the true signed pulley speeds; ``friction``: a Coulomb friction
-    [N m] on the motor."""
+    [N m] on the motor; ``lag``: the counter's reading through a first-order filter of this
+    time constant [s] (the law of the ``sensor_lag`` effect), the noise added after it."""
     desc = description()
     st = desc.structure
     values = DRIVES[drive] if isinstance(drive, str) else drive
@@ -102,7 +104,8 @@ def records(drive: str | dict[str, float], seed: int, n: int = 300, friction: fl
             cf = next(c for c in desc.make_candidates() if c.label() == "coulomb_friction@motor")
             model, th = OEModel(st, [cf]), np.array([*theta, friction, 0.0])
         w = model.simulate(th, blank, np.zeros(truth.nx))[:, 0]
-        y = np.abs(w) + NOISE_SHARE * float(np.std(w)) * rng.standard_normal(n)
+        y = (first_order_lag(np.abs(w), lag, 1.0 / RATE)
+             + NOISE_SHARE * float(np.std(w)) * rng.standard_normal(n))
         segs.append(make_segment(blank.name, t, u, y[:, None], desc.input_names,
                                  desc.output_names))
         speeds.append(w)
@@ -115,8 +118,11 @@ def write_npz(seg: Segment, path: Path) -> Path:
     return path
 
 
-def write_description(path: Path) -> Path:
-    path.write_text(yaml.safe_dump(spec(), sort_keys=False))
+def write_description(path: Path, extra: list[dict[str, Any]] | None = None) -> Path:
+    """The description (:func:`spec`), with ``extra`` candidates after the default ones."""
+    d = spec()
+    d["candidates"] = [*d["candidates"], *(extra or [])]
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
     return path
 
 

@@ -13,13 +13,13 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from dvt_identify.data import Segment
-from dvt_identify.effects.base import SegmentView
+from dvt_identify.effects.base import Effect, SegmentView
 from dvt_identify.errors import DataError, FitError
 from dvt_identify.metrics import Figures, figures
 from dvt_identify.reference import LinearReference
@@ -165,17 +165,49 @@ def mapped_starts(model: OEModel, ref: LinearReference, fit_segs: Sequence[Segme
 
 
 def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
-                    max_order: int) -> list[Array]:
+                    max_order: int, beside: Sequence[Effect] = ()) -> list[Array]:
     """Start vectors of ``model`` when an effect of it reads an output sign-blind
     (:meth:`Effect.blind_output`): the structure mapped from a linear reference fitted to
     ``fit_segs`` with those outputs unfolded (:func:`dvt_identify.unfold.unfold`), every
     effect at its initial value except a sign-blind map at its probe (the map itself, ``|y|``);
     empty when no output is read sign-blind or no reference could be fitted (its order chosen
-    on the last part of each segment, as with cross-validated selection)."""
+    on the last part of each segment, as with cross-validated selection).
+
+    An output map of the model with an inverse (:meth:`Effect.output_inverse`, at its initial
+    values: a filter on the reading smooths the dips that tell where the sign changes) is
+    undone before the unfolding; so, for further sets of starts, is each map of ``beside``
+    (candidates scored beside this one, not in the model) at each of its
+    :meth:`Effect.inverse_probes` (its value is not known yet)."""
     blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
     if not blind:
         return []
-    segs = list(fit_segs)
+    out = _unfolded_starts(model, undone(model.effects, fit_segs), blind, seed, max_order)
+    dt = min(s.dt for s in fit_segs) if fit_segs else 0.0
+    for eff in beside:
+        for p in eff.inverse_probes(dt):
+            segs = undone([eff], fit_segs, p)
+            if any(a is not b for a, b in zip(segs, fit_segs, strict=True)):
+                out += _unfolded_starts(model, undone(model.effects, segs), blind, seed,
+                                        max_order)
+    return out
+
+
+def undone(effects: Sequence[Effect], segs: Sequence[Segment], p: Array | None = None
+           ) -> list[Segment]:
+    """``segs`` with the output maps of ``effects`` that have an inverse undone
+    (:meth:`Effect.output_inverse`, the last applied first) at their initial values, or at
+    ``p`` (one effect's parameters)."""
+    out = list(segs)
+    for eff in reversed(effects):
+        q = np.array([v.initial for v in eff.params], float) if p is None else p
+        out = [replace(s, y=y) if (y := eff.output_inverse(q, s.y, s.dt)) is not None else s
+               for s in out]
+    return out
+
+
+def _unfolded_starts(model: OEModel, segs: Sequence[Segment], blind: Sequence[tuple[int, int]],
+                     seed: int, max_order: int) -> list[Array]:
+    """:func:`unfolded_starts` on ``segs`` as given (maps with an inverse already undone)."""
     for _, j in blind:
         segs = unfold(segs, j)
     try:

@@ -324,7 +324,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         trials = []
         trials.extend(_refits(current, screened[: cfg.max_tries_per_round], fit_segs, est,
                               val, same_rate, cfg, rnd, say, folds, floors,
-                              unexplained is not None))
+                              unexplained is not None, scores))
         if not any(d.accepted for d in trials) and len(named) < len(pool):
             from dvt_identify.unlisted import propose
 
@@ -424,13 +424,15 @@ def _fmt(f: Figures) -> str:
 def _refits(current: Stage, scores: Sequence[CandidateScore], fit_segs: Sequence[Segment],
             est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
             rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None,
-            floors: Sequence[Any] | None, bent: bool = False) -> list[Decision]:
+            floors: Sequence[Any] | None, bent: bool = False,
+            scored: Sequence[CandidateScore] = ()) -> list[Decision]:
     """A round's refits (:func:`_try`), independent of each other: shared between the cores
-    (:func:`dvt_identify.parallel.fork_map`), their decisions in the order of ``scores``."""
+    (:func:`dvt_identify.parallel.fork_map`), their decisions in the order of ``scores``;
+    ``scored``: every candidate the round scored (each refit's ``beside``)."""
     def one(sc: CandidateScore) -> Decision:
         say(f"round {rnd}: refit with {sc.label}")
         dec = _try(current, sc, fit_segs, est, val, same_rate, cfg, rnd, say, folds, floors,
-                   bent)
+                   bent, [o.effect for o in scored if o.label != sc.label])
         say(f"round {rnd}: {sc.label}: {'passes' if dec.accepted else 'rejected'} "
             f"({dec.reason})")
         return dec
@@ -509,11 +511,14 @@ def _polish_dry(current: Stage, baseline: Stage, est: Sequence[Segment],
 def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
          est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
          rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None = None,
-         floors: Sequence[Any] | None = None, bent: bool = False) -> Decision:
+         floors: Sequence[Any] | None = None, bent: bool = False,
+         beside: Sequence[Effect] = ()) -> Decision:
     """Refit ``current`` with the candidate ``sc`` and test it (the module docstring's
     evidence). ``bent``: the current optimum may have bent itself towards the missing effect
     (a drift not yet explained): the refit also starts from every parameter's prior with each
-    of the candidate's variants (:func:`_prior_starts`)."""
+    of the candidate's variants (:func:`_prior_starts`). ``beside``: the round's other
+    scored candidates (an output map among them with an inverse also shapes a sign-blind
+    map's starts, :func:`~dvt_identify.linref.unfolded_starts`)."""
     old = current.fit
     model = OEModel(old.model.structure, (*old.model.effects, sc.effect))
     theta0 = np.concatenate([old.theta_, [p.initial for p in sc.effect.params]])
@@ -525,7 +530,8 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
         prior[: old.model.n_struct] = [p.initial for p in old.model.specs[: old.model.n_struct]]
         theta0, extra = prior, [theta0]
         # a sign-blind map: also the structure mapped from the output unfolded
-        extra.extend(unfolded_starts(model, fit_segs, cfg.seed, cfg.reference_max_order))
+        extra.extend(unfolded_starts(model, fit_segs, cfg.seed, cfg.reference_max_order,
+                                     beside))
     if bent:
         extra.extend(_prior_starts(old.model, sc.effect, fit_segs[0]))
     if cfg.refit_starts > 1:

@@ -46,6 +46,7 @@ ENTRIES: list[tuple[str, str, dict[str, object]]] = [
     ("periodic_disturbance", "sun_shaft", {"orders": [3.0]}),
     ("asymmetric_friction", "carrier3", {}),
     ("sign_blind", "carrier3", {}),
+    ("sensor_lag", "carrier3", {"max_tau": 0.05}),
     ("sensor_saturation", "carrier3", {}),
     ("sensor_quantisation", "carrier3", {}),
     ("sensor_offset", "carrier3", {}),
@@ -64,7 +65,7 @@ def test_every_class_of_the_registry_is_built_for_its_entry() -> None:
     assert VOCABULARY == ("coulomb_friction", "stribeck_friction", "windage", "backlash",
                           "measurement_delay", "brake_engagement", "brake_lockup", "sensor_gain",
                           "periodic_disturbance", "asymmetric_friction", "sign_blind",
-                          "sensor_saturation", "sensor_quantisation", "sensor_offset",
+                          "sensor_lag", "sensor_saturation", "sensor_quantisation", "sensor_offset",
                           "gravity_load", "unlisted")
     assert isinstance(_build("backlash", "carrier3", {"compliant": True}), CompliantOutputBacklash)
     assert isinstance(_build("backlash", "carrier3", {}), OutputBacklash)

@@ -52,6 +52,7 @@ from dvt_identify.effects.position import GravityLoad, Unlisted
 from dvt_identify.effects.sensors import (
     MeasurementDelay,
     SensorGain,
+    SensorLag,
     SensorOffset,
     SensorQuantisation,
     SensorSaturation,
@@ -119,7 +120,7 @@ __all__ = [
     "REGISTRY", "VOCABULARY", "Array", "AsymmetricFriction", "Backlash", "BrakeEngagement",
     "BrakeLockup", "BuildContext", "CompliantOutputBacklash", "CoulombFriction", "Effect",
     "EngagementDeadTime", "GravityLoad", "MeasurementDelay", "OutputBacklash", "ParamSpec",
-    "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "SensorOffset",
-    "SensorQuantisation", "SensorSaturation", "SignBlindSensor", "StribeckFriction",
+    "PeriodicDisturbance", "ScoringContext", "SegmentView", "SensorGain", "SensorLag",
+    "SensorOffset", "SensorQuantisation", "SensorSaturation", "SignBlindSensor", "StribeckFriction",
     "Term", "Unlisted", "Windage", "discover", "make_effect",
 ]

@@ -389,6 +389,17 @@ class Effect:
         """Transformed outputs, shape (N, ny), or ``None``."""
         return None
 
+    def output_inverse(self, p: Array, y: Array, dt: float) -> Array | None:
+        """Measured outputs (N, ny) with this effect's output map undone, approximately (for
+        starts only: the fit runs through :meth:`output_transform`), or ``None`` when the map
+        has no inverse to offer (a sign-blind map's is :mod:`dvt_identify.unfold`)."""
+        return None
+
+    def inverse_probes(self, dt: float) -> list[Array]:
+        """Parameter vectors at which :meth:`output_inverse` is worth trying for starts when
+        the effect's own value is not known yet (sample time ``dt`` [s]): its initial values."""
+        return [np.array([q.initial for q in self.params], float)]
+
     # -- the model node ------------------------------------------------------------------
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
         """The model node's effect term for parameters ``p`` (not yet validated; the push

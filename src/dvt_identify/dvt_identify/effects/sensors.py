@@ -1,5 +1,5 @@
-"""Output effects of a sensor: measurement delay, gain (scale) error, and the sensor maps
-(sign-blind ``|y|``, saturation, quantisation, offset).
+"""Output effects of a sensor: measurement delay, gain (scale) error, a first-order lag, and the
+sensor maps (sign-blind ``|y|``, saturation, quantisation, offset).
 
 Every output effect acts on a *measured output* (``where`` names it; with a structure that has
 hidden states the outputs are a subset of the states, :meth:`BuildContext.output_index`). The
@@ -28,12 +28,15 @@ evidence of the candidate under the same name.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter, lfilter_zi
 
 from dvt_identify.effects.base import Array, BuildContext, Effect, ParamSpec, ScoringContext, Term
+from dvt_identify.errors import DescriptionError
 from dvt_identify.resid import residual_spectrum
 
 
@@ -253,6 +256,103 @@ def _column(y: Array, j: int, values: Array) -> Array:
     out = y.copy()
     out[:, j] = values
     return out
+
+
+LAG_SCAN = 16
+"""Time constants the lag's scan tries besides 0: geometric from a quarter sample to
+``max_tau``."""
+
+
+def first_order_lag(x: Array, tau: float, dt: float) -> Array:
+    """``x`` (N,) read through a first-order low-pass ``tau y' = x - y`` [s], shape (N,):
+    exact for ``x`` linear between samples (``y[k+1] = a y[k] + b0 x[k+1] + b1 x[k]``, ``a =
+    exp(-dt / tau)``, unit static gain), started at rest at ``x[0]``; ``x`` itself for ``tau
+    <= 0``."""
+    x = np.asarray(x, float)
+    if tau <= 0.0 or x.size == 0:
+        return x.copy()
+    a = math.exp(-dt / tau)
+    c = (tau / dt) * (1.0 - a)
+    b = np.array([1.0 - c, c - a])
+    return np.asarray(lfilter(b, [1.0, -a], x, zi=lfilter_zi(b, [1.0, -a]) * x[0])[0], float)
+
+
+@dataclass
+class SensorLag(Effect):
+    """Output ``j`` read through a first-order low-pass (a sensor's or a drive's filter on a
+    speed reading, a counter's averaging): ``tau y_j' = x_j - y_j``
+    (:func:`first_order_lag`). Parameter ``tau`` in ``[0, max_tau]`` s (option, default 0.1
+    s), null 0. Applied after the maps accepted before it (a sign-blind counter read through
+    its filter: ``lag(|x|)``). No model-node term.
+
+    Scored by the secant to a one-sample time constant; the scan of ``tau`` over
+    :data:`LAG_SCAN` values (the baseline's simulated output filtered, not refitted) gives the
+    refit's start and the evidence (``best_tau_s``, ``sse_reduction_percent_at_best_tau``)."""
+
+    name = "sensor_lag"
+    order = 115
+    no_term = "the model node has no output filter"
+    global_map = True  # a structure with a slow mode can take the lag's place (the refit)
+
+    @classmethod
+    def build(cls, ctx: BuildContext) -> Effect:
+        tmax = ctx.number("max_tau", 0.1)
+        if not tmax > 0.0:
+            raise DescriptionError(f"candidate sensor_lag@{ctx.where}: max_tau: expected a "
+                                   f"time constant > 0 s, got {tmax!r}")
+        return cls(where=ctx.where, params=(ParamSpec("tau" + ctx.suffix, 0.0, 0.0, tmax, "s"),),
+                   index=ctx.output_index(), options=dict(ctx.options))
+
+    def output_transform(self, p: Array, y: Array, dt: float) -> Array | None:
+        tau = float(p[0])
+        if tau <= 0.0:
+            return None
+        return _column(y, self.index, first_order_lag(y[:, self.index], tau, dt))
+
+    def output_inverse(self, p: Array, y: Array, dt: float) -> Array | None:
+        """``y_j + tau y_j'`` (central differences): the filter's input, for the starts (a
+        reading with its dips smoothed away hides where a sign-blind output changes sign)."""
+        tau = float(p[0])
+        if tau <= 0.0 or y.shape[0] < 2:
+            return None
+        return _column(y, self.index, y[:, self.index] + tau * np.gradient(y[:, self.index], dt))
+
+    def inverse_probes(self, dt: float) -> list[Array]:
+        """Its start (the scan's best) and one and two sample times."""
+        taus = [float(self.params[0].initial), dt, 2.0 * dt]
+        return [np.array([t]) for t in dict.fromkeys(taus)
+                if 0.0 < t <= float(self.params[0].upper)]
+
+    def scoring_step(self, name: str, dt: float) -> float | None:
+        """One sample: the regressor is the secant to ``tau = dt``."""
+        return dt
+
+    def inadmissible(self, p: Array) -> str | None:
+        tau = float(p[0])
+        return None if math.isfinite(tau) and tau > 0.0 else f"tau = {tau}: no filter"
+
+    def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
+        """The weighted SSE of the output with the baseline's simulation filtered at ``0`` and
+        :data:`LAG_SCAN` time constants (geometric, a quarter of the finest sample time to
+        ``max_tau``), summed over the segments; the best one [s] and the SSE reduction there
+        [%]; the best is the refit's start when above 0."""
+        j, wj = self.index, float(ctx.weights[self.index])
+        dt = min(v.dt for v in ctx.views)
+        taus = [0.0, *np.geomspace(0.25 * dt, float(self.params[0].upper), LAG_SCAN).tolist()]
+        sse = []
+        for tau in taus:
+            tot = 0.0
+            for v, yb in zip(ctx.views, ctx.simulated, strict=True):
+                e = (v.y[:, j] - first_order_lag(yb[:, j], tau, v.dt)) / wj
+                tot += float(e @ e)
+            sse.append(tot)
+        k = int(np.argmin(sse))
+        extra: dict[str, object] = {
+            "lag_scan": [{"tau_s": t, "sse": e} for t, e in zip(taus, sse, strict=True)],
+            "best_tau_s": taus[k],
+            "sse_reduction_percent_at_best_tau": (100.0 * (sse[0] - sse[k]) / sse[0]
+                                                  if sse[0] else 0.0)}
+        return extra, ({self.params[0].name: taus[k]} if taus[k] > 0 else {})
 
 
 @dataclass
