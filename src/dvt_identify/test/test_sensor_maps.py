@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dvt_identify.description import Description, parse_description
 from dvt_identify.effects import (
     VOCABULARY,
     ScoringContext,
@@ -23,6 +24,23 @@ INPUTS = ("u",)
 
 def build(name: str, where: str = "b", **opts: object) -> Effect:
     return make_effect(name, where, STATES, INPUTS, "N", "m/s", options=dict(opts))
+
+
+def cart_description(candidates: list[dict[str, object]]) -> Description:
+    """A cart ``M v' = F - Fv v`` (priors M 2 kg, Fv 3 N s/m), its speed measured, with these
+    candidates, fitted at the records' rate."""
+    raw = {
+        "name": "cart",
+        "inputs": [{"name": "force", "topic": "/c/drive", "field": "effort", "joint": "c"}],
+        "outputs": [{"name": "v", "topic": "/c/joint_states", "field": "velocity",
+                     "joint": "c"}],
+        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
+                      "input_matrix": [[1.0]],
+                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
+                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
+        "candidates": candidates,
+        "preprocess": {"fit_decimate": 1}}
+    return parse_description(raw, "cart.yaml")
 
 
 def ctx(y_meas: np.ndarray, y_sim: np.ndarray, u: np.ndarray) -> ScoringContext:
@@ -131,24 +149,12 @@ def test_loop_accepts_a_saturating_sensor_and_nothing_else() -> None:
     saturation is scored first, refitted and accepted; the offset and sign-blind maps are not;
     the cart's mass and damping come out within 3 standard deviations."""
     from dvt_identify.data import Segment, make_segment
-    from dvt_identify.description import parse_description
     from dvt_identify.loop import LoopConfig, identify
     from dvt_identify.simulation import OEModel
 
-    raw = {
-        "name": "cart",
-        "inputs": [{"name": "force", "topic": "/c/drive", "field": "effort", "joint": "c"}],
-        "outputs": [{"name": "v", "topic": "/c/joint_states", "field": "velocity",
-                     "joint": "c"}],
-        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                      "input_matrix": [[1.0]],
-                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
-        "candidates": [{"effect": "sensor_saturation", "where": "v", "max_level": 1000.0},
-                       {"effect": "sensor_offset", "where": "v"},
-                       {"effect": "sign_blind", "where": "v"}],
-        "preprocess": {"fit_decimate": 1}}
-    desc = parse_description(raw, "cart.yaml")
+    desc = cart_description([{"effect": "sensor_saturation", "where": "v", "max_level": 1000.0},
+                             {"effect": "sensor_offset", "where": "v"},
+                             {"effect": "sign_blind", "where": "v"}])
 
     def record(name: str, seed: int, n: int = 1500) -> Segment:
         rng = np.random.default_rng(seed)
@@ -198,25 +204,13 @@ def _cart_loop(lag: float) -> tuple[list[str], dict[str, float], dict[str, float
     filter of time constant ``lag`` [s] (0: none), 1 % noise after it; identified with the
     lag, offset and delay among the candidates."""
     from dvt_identify.data import Segment, make_segment
-    from dvt_identify.description import parse_description
     from dvt_identify.effects.sensors import first_order_lag
     from dvt_identify.loop import LoopConfig, identify
     from dvt_identify.simulation import OEModel
 
-    raw = {
-        "name": "cart",
-        "inputs": [{"name": "force", "topic": "/c/drive", "field": "effort", "joint": "c"}],
-        "outputs": [{"name": "v", "topic": "/c/joint_states", "field": "velocity",
-                     "joint": "c"}],
-        "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                      "input_matrix": [[1.0]],
-                      "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                     "Fv": {"initial": 3.0, "lower": 0.0}}},
-        "candidates": [{"effect": "sensor_lag", "where": "v"},
-                       {"effect": "sensor_offset", "where": "v"},
-                       {"effect": "measurement_delay", "where": "v", "max_delay": 0.05}],
-        "preprocess": {"fit_decimate": 1}}
-    desc = parse_description(raw, "cart.yaml")
+    desc = cart_description([{"effect": "sensor_lag", "where": "v"},
+                             {"effect": "sensor_offset", "where": "v"},
+                             {"effect": "measurement_delay", "where": "v", "max_delay": 0.05}])
 
     def record(name: str, seed: int, n: int = 1500) -> Segment:
         rng = np.random.default_rng(seed)
