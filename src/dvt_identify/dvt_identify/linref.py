@@ -165,7 +165,8 @@ def mapped_starts(model: OEModel, ref: LinearReference, fit_segs: Sequence[Segme
 
 
 def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
-                    max_order: int, beside: Sequence[Effect] = ()) -> list[Array]:
+                    max_order: int, beside: Sequence[Effect] = (),
+                    theta: Array | None = None) -> list[Array]:
     """Start vectors of ``model`` when an effect of it reads an output sign-blind
     (:meth:`Effect.blind_output`): the structure mapped from a linear reference fitted to
     ``fit_segs`` with those outputs unfolded (:func:`dvt_identify.unfold.unfold`), every
@@ -177,30 +178,38 @@ def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
     values: a filter on the reading smooths the dips that tell where the sign changes) is
     undone before the unfolding; so, for further sets of starts, is each map of ``beside``
     (candidates scored beside this one, not in the model) at each of its
-    :meth:`Effect.inverse_probes` (its value is not known yet)."""
+    :meth:`Effect.inverse_probes` (its value is not known yet). ``theta`` (the model's
+    parameters, e.g. the current optimum with the candidate's start): the model's effects are
+    undone at, and keep, its values instead of their initial ones."""
     blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
     if not blind:
         return []
-    out = _unfolded_starts(model, undone(model.effects, fit_segs), blind, seed, max_order)
+    values = (model.effect_params(np.asarray(theta, float)) if theta is not None
+              else [np.array([q.initial for q in e.params], float) for e in model.effects])
+    own = [(e, v) for e, v in zip(model.effects, values, strict=True)]
+    out = _unfolded_starts(model, undone_at(own, fit_segs), blind, seed, max_order)
     dt = min(s.dt for s in fit_segs) if fit_segs else 0.0
     for eff in beside:
         for p in eff.inverse_probes(dt):
-            segs = undone([eff], fit_segs, p)
+            segs = undone_at([(eff, p)], fit_segs)
             if any(a is not b for a, b in zip(segs, fit_segs, strict=True)):
-                out += _unfolded_starts(model, undone(model.effects, segs), blind, seed,
-                                        max_order)
+                out += _unfolded_starts(model, undone_at(own, segs), blind, seed, max_order)
+    if theta is not None:  # the model's effects keep the given values (the maps their probe)
+        free = {k for k, _ in blind}
+        for th in out:
+            for k in range(len(model.effects)):
+                if k not in free:
+                    th[model.effect_slice(k)] = values[k]
     return out
 
 
-def undone(effects: Sequence[Effect], segs: Sequence[Segment], p: Array | None = None
-           ) -> list[Segment]:
-    """``segs`` with the output maps of ``effects`` that have an inverse undone
-    (:meth:`Effect.output_inverse`, the last applied first) at their initial values, or at
-    ``p`` (one effect's parameters)."""
+def undone_at(maps: Sequence[tuple[Effect, Array]], segs: Sequence[Segment]
+              ) -> list[Segment]:
+    """``segs`` with the output maps ``(effect, parameters)`` that have an inverse undone
+    (:meth:`Effect.output_inverse`, the last applied first)."""
     out = list(segs)
-    for eff in reversed(effects):
-        q = np.array([v.initial for v in eff.params], float) if p is None else p
-        out = [replace(s, y=y) if (y := eff.output_inverse(q, s.y, s.dt)) is not None else s
+    for eff, p in reversed(maps):
+        out = [replace(s, y=y) if (y := eff.output_inverse(p, s.y, s.dt)) is not None else s
                for s in out]
     return out
 

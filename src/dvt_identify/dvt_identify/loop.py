@@ -531,7 +531,7 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
         theta0, extra = prior, [theta0]
         # a sign-blind map: also the structure mapped from the output unfolded
         extra.extend(unfolded_starts(model, fit_segs, cfg.seed, cfg.reference_max_order,
-                                     beside))
+                                     beside, theta0))
     if bent:
         extra.extend(_prior_starts(old.model, sc.effect, fit_segs[0]))
     if cfg.refit_starts > 1:
