@@ -179,8 +179,9 @@ def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
     undone before the unfolding; so, for further sets of starts, is each map of ``beside``
     (candidates scored beside this one, not in the model) at each of its
     :meth:`Effect.inverse_probes` (its value is not known yet). ``theta`` (the model's
-    parameters, e.g. the current optimum with the candidate's start): the model's effects are
-    undone at, and keep, its values instead of their initial ones."""
+    parameters, e.g. the current optimum with the candidate's start): the model's maps are
+    undone at its values instead of their initial ones (the starts keep every effect at its
+    initial value: a friction fitted without the map is bent)."""
     blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
     if not blind:
         return []
@@ -194,12 +195,6 @@ def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
             segs = undone_at([(eff, p)], fit_segs)
             if any(a is not b for a, b in zip(segs, fit_segs, strict=True)):
                 out += _unfolded_starts(model, undone_at(own, segs), blind, seed, max_order)
-    if theta is not None:  # the model's effects keep the given values (the maps their probe)
-        free = {k for k, _ in blind}
-        for th in out:
-            for k in range(len(model.effects)):
-                if k not in free:
-                    th[model.effect_slice(k)] = values[k]
     return out
 
 
