@@ -43,7 +43,13 @@ from dvt_identify.errors import FitError
 from dvt_identify.fitrate import (
     MIN_FIT_SAMPLES,
 )
-from dvt_identify.fitstarts import StartPoints, _x0_guess, window_sign_starts, x0_guesses
+from dvt_identify.fitstarts import (
+    StartPoints,
+    _x0_guess,
+    window_sign_starts,
+    without_blind_maps,
+    x0_guesses,
+)
 from dvt_identify.parallel import fork_map
 from dvt_identify.resid import robust_white_floor
 from dvt_identify.sensitivity import simulate_sens
@@ -738,12 +744,9 @@ class OEFit(StartPoints):
         between the state and the data: one basin where the map has one per sign pattern of
         the free response). Empty for a model without such an output."""
         m = self.model
-        blind = [(k, j) for k, e in enumerate(m.effects) if (j := e.blind_output()) is not None]
+        blind, bare = without_blind_maps(m, theta)
         if not blind:
             return []
-        bare = np.asarray(theta, float).copy()
-        for k, _ in blind:
-            bare[m.effect_slice(k)] = [p.null for p in m.effects[k].params]
         segs = [seg]
         for _, j in blind:
             segs = unfold(segs, j)

@@ -71,6 +71,17 @@ WINDOW_SIGN_STARTS = 2
 """How many of the best-fitting patterns' states :func:`window_sign_starts` returns."""
 
 
+def without_blind_maps(model: OEModel, theta: Array) -> tuple[list[tuple[int, int]], Array]:
+    """The sign-blind maps of ``model`` as ``(effect index, output index)``
+    (:meth:`Effect.blind_output`) and ``theta`` (p,) with those maps at their null values (the
+    model without them, affine in its initial state for a linear structure)."""
+    blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
+    bare = np.asarray(theta, float).copy()
+    for k, _ in blind:
+        bare[model.effect_slice(k)] = [q.null for q in model.effects[k].params]
+    return blind, bare
+
+
 def window_sign_starts(model: OEModel, theta: Array, part: Segment, w: Array,
                        noise: Sequence[float]) -> list[Array]:
     """Initial-state starts (each (nx,)) for a short window ``part`` of a model that reads
@@ -90,12 +101,9 @@ def window_sign_starts(model: OEModel, theta: Array, part: Segment, w: Array,
     from dvt_identify.simulation import DivergedError
     from dvt_identify.unfold import _bounds, _signal, cuts
 
-    blind = [(k, j) for k, e in enumerate(model.effects) if (j := e.blind_output()) is not None]
+    blind, bare = without_blind_maps(model, theta)
     if not blind or part.n < 2:
         return []
-    bare = np.asarray(theta, float).copy()
-    for k, _ in blind:
-        bare[model.effect_slice(k)] = [q.null for q in model.effects[k].params]
     cols = sorted({j for _, j in blind})
     y = np.asarray(part.y, float)
     pieces = {j: _bounds(cuts(np.abs(y[:, j]), float(noise[j]), ends=True), part.n)
