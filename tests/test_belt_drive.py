@@ -31,13 +31,15 @@ def write_bag(path: Path, seg: Segment) -> Path:
     })
 
 
-def identify(tmp_path: Path, drive: str, friction: float) -> dict:
-    """500-sample records: the first 300 estimation, the last 200 test."""
-    segs, _ = belt_drive.records(drive, seed=21, n=500, friction=friction)
+def identify(tmp_path: Path, drive: str | dict[str, float], friction: float, seed: int = 21,
+             lag: float = 0.0, extra: list[dict[str, object]] | None = None) -> dict:
+    """500-sample records (``belt_drive.records`` with ``seed``, ``friction`` and ``lag``): the
+    first 300 estimation, the last 200 test; ``extra`` candidates in the description."""
+    segs, _ = belt_drive.records(drive, seed=seed, n=500, friction=friction, lag=lag)
     est = [str(write_bag(tmp_path / f"est{k}", s.rows(0, 300))) for k, s in enumerate(segs)]
     test = [str(write_bag(tmp_path / f"test{k}", s.rows(300, 500, from_zero=True)))
             for k, s in enumerate(segs)]
-    desc = belt_drive.write_description(tmp_path / "belt-drive.yaml")
+    desc = belt_drive.write_description(tmp_path / "belt-drive.yaml", extra)
     assert main([*est, "--select-on", "cv", "--test", *test, "--description", str(desc),
                  "--out", str(tmp_path / "rep"), "--no-plots"]) == 0
     return json.loads((tmp_path / "rep" / "report.json").read_text())
@@ -66,4 +68,22 @@ def test_friction_behind_a_sign_blind_sensor_is_named_with_the_drive(tmp_path: P
     assert sorted(accepted(rep)) == ["coulomb_friction@motor", "sign_blind@w_pulley"]
     values, std = rep["final"]["parameters"], rep["final"]["parameter_std"]
     for name, value in {**belt_drive.DRIVES["slow_belt"], "Fc": 0.12}.items():
+        assert abs(values[name] - value) <= 3.0 * std[name], (name, values[name], std[name])
+
+
+def test_a_filtered_reading_keeps_both_maps_and_the_drive_within_3_std(tmp_path: Path) -> None:
+    """A drawn drive (``belt_drive.draw`` seed 10: a heavy motor on a light pulley, belt mode
+    5.1 Hz) whose counter is read through a 30-ms filter, with the ``sensor_lag`` candidate:
+    the sign-blind map and the lag are accepted and every structure parameter and the time
+    constant lie within 3 reported std of the drawn ones. Before the restarts of a collapsed
+    trust region (``dvt_identify.fit.MAX_RESTARTS``) the refit stopped in the valley of the
+    mass ratio with the belt damping 25 std off; with the restarts alone, the recheck's refit
+    of the sign-blind map from the model without it missed the current optimum (cost 268
+    against 0.52) and took the map out (test fit 8 %): the recheck now also starts there."""
+    drive = belt_drive.draw(np.random.default_rng(10))
+    rep = identify(tmp_path, drive, 0.0, seed=1000, lag=0.03,
+                   extra=[{"effect": "sensor_lag", "where": "w_pulley"}])
+    assert sorted(accepted(rep)) == ["sensor_lag@w_pulley", "sign_blind@w_pulley"]
+    values, std = rep["final"]["parameters"], rep["final"]["parameter_std"]
+    for name, value in {**drive, "tau": 0.03}.items():
         assert abs(values[name] - value) <= 3.0 * std[name], (name, values[name], std[name])

@@ -512,13 +512,15 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
          est: Sequence[Segment], val: Sequence[Segment], same_rate: bool, cfg: LoopConfig,
          rnd: int, say: Progress, folds: Sequence[Sequence[int]] | None = None,
          floors: Sequence[Any] | None = None, bent: bool = False,
-         beside: Sequence[Effect] = ()) -> Decision:
+         beside: Sequence[Effect] = (), known: Sequence[Array] = ()) -> Decision:
     """Refit ``current`` with the candidate ``sc`` and test it (the module docstring's
     evidence). ``bent``: the current optimum may have bent itself towards the missing effect
     (a drift not yet explained): the refit also starts from every parameter's prior with each
     of the candidate's variants (:func:`_prior_starts`). ``beside``: the round's other
     scored candidates (an output map among them with an inverse also shapes a sign-blind
-    map's starts, :func:`~dvt_identify.linref.unfolded_starts`)."""
+    map's starts, :func:`~dvt_identify.linref.unfolded_starts`). ``known``: further starts
+    (p,) of the refitted model, e.g. its optimum from before when it was fitted already
+    (:func:`_recheck`)."""
     old = current.fit
     model = OEModel(old.model.structure, (*old.model.effects, sc.effect))
     theta0 = np.concatenate([old.theta_, [p.initial for p in sc.effect.params]])
@@ -534,6 +536,7 @@ def _try(current: Stage, sc: CandidateScore, fit_segs: Sequence[Segment],
                                      beside, theta0))
     if bent:
         extra.extend(_prior_starts(old.model, sc.effect, fit_segs[0]))
+    extra.extend(np.asarray(k, dtype=float) for k in known)
     if cfg.refit_starts > 1:
         alt = theta0.copy()
         alt[len(old.theta_):] = [0.5 * p.initial if p.initial != p.null else p.initial
@@ -651,7 +654,13 @@ def _recheck(current: Stage, kept: Sequence[Decision], fit_segs: Sequence[Segmen
             # stretched to a plain Coulomb law): it stays
             say(f"round {rnd}: recheck {label}: without it " + "; ".join(bad) + "; kept")
             continue
-        again = _try(stage, dec.score, fit_segs, est, val, same_rate, cfg, rnd, say, folds)
+        # the model with it added again is the current one: its optimum is a start (the
+        # effect's parameters moved to the end); without it the refit may miss that optimum
+        # and take out what passed (a belt read sign-blind through a filter: the sign-blind
+        # map refitted from the model without it landed at a cost 500 times the current)
+        here = np.concatenate([theta, current.fit.theta_[sl]])
+        again = _try(stage, dec.score, fit_segs, est, val, same_rate, cfg, rnd, say, folds,
+                     known=[here])
         if again.accepted or again.likely:
             # a large gain that only misses significance against the others is no reason to
             # take out what passed (measured: a true windage that cut the validation error by
