@@ -46,6 +46,7 @@ from dvt_identify.fitrate import (
 from dvt_identify.fitstarts import (
     StartPoints,
     _x0_guess,
+    undo_maps,
     window_sign_starts,
     without_blind_maps,
     x0_guesses,
@@ -805,12 +806,20 @@ class OEFit(StartPoints):
         those outputs unfolded (:func:`dvt_identify.unfold.unfold`, either overall sign) the
         model without its sign-blind maps is fitted in its initial state alone (no ``|y|``
         between the state and the data: one basin where the map has one per sign pattern of
-        the free response). Empty for a model without such an output."""
+        the free response). Output maps with an inverse (:meth:`Effect.output_inverse`: a
+        filter on the reading) are undone before the unfolding, at ``theta``, and left out of
+        that model. Empty for a model without such an output."""
         m = self.model
         blind, bare = without_blind_maps(m, theta)
         if not blind:
             return []
-        segs = [seg]
+        # a map with an inverse (a filter on the reading) undone first, at its value here: it
+        # smooths the dips of |y| that tell where the sign changes; the state is then fitted
+        # on the model without it too
+        segs, undone = undo_maps(list(zip(m.effects, m.effect_params(theta), strict=True)),
+                                 [seg])
+        for k in undone:
+            bare[m.effect_slice(k)] = [q.null for q in m.effects[k].params]
         for _, j in blind:
             segs = unfold(segs, j)
         w = self.weights_

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -80,6 +81,27 @@ def without_blind_maps(model: OEModel, theta: Array) -> tuple[list[tuple[int, in
     for k, _ in blind:
         bare[model.effect_slice(k)] = [q.null for q in model.effects[k].params]
     return blind, bare
+
+
+def undo_maps(maps: Sequence[tuple[Any, Array]], segs: Sequence[Segment]
+              ) -> tuple[list[Segment], list[int]]:
+    """``segs`` with the output maps ``(effect, parameters)`` that have an inverse undone
+    (:meth:`Effect.output_inverse`, the last applied first), and the indices into ``maps`` of
+    those undone."""
+    out, undone = list(segs), []
+    for k in reversed(range(len(maps))):
+        eff, p = maps[k]
+        ys = [eff.output_inverse(p, s.y, s.dt) for s in out]
+        if any(y is not None for y in ys):
+            out = [s if y is None else replace(s, y=y) for s, y in zip(out, ys, strict=True)]
+            undone.append(k)
+    return out, undone
+
+
+def undone_at(maps: Sequence[tuple[Any, Array]], segs: Sequence[Segment]) -> list[Segment]:
+    """``segs`` with the output maps ``(effect, parameters)`` that have an inverse undone
+    (:func:`undo_maps`)."""
+    return undo_maps(maps, segs)[0]
 
 
 def window_sign_starts(model: OEModel, theta: Array, part: Segment, w: Array,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from dvt_identify.data import Segment
 from dvt_identify.effects.base import Effect, SegmentView
 from dvt_identify.errors import DataError, FitError
+from dvt_identify.fitstarts import undone_at
 from dvt_identify.metrics import Figures, figures
 from dvt_identify.reference import LinearReference
 from dvt_identify.simulation import OEModel, zoh_decimate
@@ -195,17 +196,6 @@ def unfolded_starts(model: OEModel, fit_segs: Sequence[Segment], seed: int,
             segs = undone_at([(eff, p)], fit_segs)
             if any(a is not b for a, b in zip(segs, fit_segs, strict=True)):
                 out += _unfolded_starts(model, undone_at(own, segs), blind, seed, max_order)
-    return out
-
-
-def undone_at(maps: Sequence[tuple[Effect, Array]], segs: Sequence[Segment]
-              ) -> list[Segment]:
-    """``segs`` with the output maps ``(effect, parameters)`` that have an inverse undone
-    (:meth:`Effect.output_inverse`, the last applied first)."""
-    out = list(segs)
-    for eff, p in reversed(maps):
-        out = [replace(s, y=y) if (y := eff.output_inverse(p, s.y, s.dt)) is not None else s
-               for s in out]
     return out
 
 

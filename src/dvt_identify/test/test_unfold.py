@@ -7,6 +7,7 @@ import belt_drive
 import numpy as np
 import pytest
 
+from dvt_identify.data import Segment
 from dvt_identify.effects import make_effect
 from dvt_identify.linref import unfolded_starts
 from dvt_identify.simulation import OEModel
@@ -122,3 +123,35 @@ def test_the_best_window_pattern_is_the_true_state() -> None:
     x0 = window_sign_starts(m, theta, window, np.ones(1), [0.0])[0]
     signed = m.simulate(bare, seg, x0)[:, 0]
     assert np.max(np.abs(np.abs(signed) - np.abs(w))) < 1e-6 * np.max(np.abs(w))
+
+
+@pytest.mark.parametrize("seed", [4, 6, 10])
+def test_a_filtered_sign_blind_state_is_estimated_as_well_as_the_true_one(seed: int) -> None:
+    """A random drive whose counter reads ``|w|`` through a 30-ms filter, at its drawn
+    parameters: the state estimated on each test part (the last 200 samples of its three
+    500-sample records, :meth:`OEFit.estimate_x0` as the test figures take it) reproduces the
+    part at least as well as the true state (within 0.5 points of fit). The unfolding's starts
+    undo the filter first (:func:`dvt_identify.fitstarts.undo_maps`): before, the filter hid the
+    dips of ``|w|`` that place the sign changes and two parts of seeds 4 and 6 scored 80.1 and
+    85.5 % where the true state gives 92.9 and 94.3 %."""
+    from dvt_identify.description import parse_description
+    from dvt_identify.fit import OEFit
+
+    desc = parse_description(belt_drive.spec([
+        {"effect": "sign_blind", "where": "w_pulley"},
+        {"effect": "sensor_lag", "where": "w_pulley"}]), "belt.yaml")
+    m = OEModel(desc.structure, desc.make_candidates())
+    drive = belt_drive.draw(np.random.default_rng(seed))
+    segs, _ = belt_drive.records(drive, seed=100 * seed, n=500, lag=0.03)
+    theta = np.array([drive[p.name] for p in m.structure.params] + [1.0, 0.03])
+    f = OEFit(m)
+    f.theta_, f.weights_ = theta, f._output_weights([s.rows(0, 300) for s in segs])
+
+    def fit_percent(seg: Segment, x0: np.ndarray) -> float:
+        y, p = seg.y[:, 0], m.simulate(theta, seg, x0)[:, 0]
+        return float(100.0 * (1.0 - np.linalg.norm(y - p) / np.linalg.norm(y - y.mean())))
+    for seg in segs:
+        states, _ = m.simulate_states(theta, seg, np.zeros(m.nx))
+        part = seg.rows(300, 500, from_zero=True)
+        got, true = fit_percent(part, f.estimate_x0(part)), fit_percent(part, states[300])
+        assert got >= true - 0.5, (seg.name, got, true)
