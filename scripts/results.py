@@ -143,6 +143,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
+    "first_refits": _script("scripts/first_refits.py", "--json"),
     "belt": _script("scripts/belt_draws.py", "--json"),
     "belt_friction": _script("scripts/belt_draws.py", "--friction", "0.12", "--json"),
     "belt_window": _script("scripts/belt_draws.py", "--init-window", "10", "--json"),
