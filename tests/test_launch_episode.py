@@ -76,7 +76,9 @@ def test_launch_supervise_detects_refits_pushes_and_restores(procs: Procs,
     # the live residual after the push lower than during the change on the output that
     # alarmed (the supervisor's watch and, independently, the ring's /dvt/model/residual)
     name = after[0]["name"]
-    assert rec["live_ratio"][name] < 0.8, (name, rec["live_before"], rec["live_after"])
+    assert rec["live_ratio"][name] < 0.8, (name, rec["live_before"], rec["live_after"],
+                                           rec["refit"].get("accepted"),
+                                           rec["refit"].get("changed"))
     f = analyse_episode(logdir).figures
     assert f["residual_rms_restored"][name] < f["residual_rms_changed"][name], f
     assert (logdir / "identify" / "episodes" / f"episode-{rec['episode']}.md").exists()
