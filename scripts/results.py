@@ -144,6 +144,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "draws": _script("scripts/effect_draws.py", "--json"),
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
     "first_refits": _script("scripts/first_refits.py", "--json"),
+    "first_refits_1k": _script("scripts/first_refits.py", "--rate", "1000", "--json"),
     "belt": _script("scripts/belt_draws.py", "--json"),
     "belt_friction": _script("scripts/belt_draws.py", "--friction", "0.12", "--json"),
     "belt_window": _script("scripts/belt_draws.py", "--init-window", "10", "--json"),
