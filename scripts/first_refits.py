@@ -4,7 +4,8 @@ For each seed and change time: the ``watch`` experiment on the ``physical`` plan
 ``--rate`` [Hz], its Coulomb friction stepping (``friction_step``: 0 -> 0.05 N m sun,
 0.20 N m carrier 3) at that plant time, recorded offline; the refit fits and holds out the
 windows of :func:`dvt_driver.system.bench_loop.live_supervisor` at that rate from 0.5 s after
-the change, exactly as the supervisor's first stage (:func:`dvt_identify.refit.refit`, the
+the change, exactly as the supervisor's first stage (the bag of ``tests/first_refit_run.py``;
+:func:`dvt_identify.refit.refit`, the
 structure held at the model in use, ``fit_decimate`` rate/100). Change times spread over
 the ``watch`` cycle (11 s) put the windows on different parts of the excitation.
 
@@ -22,7 +23,6 @@ Usage: ``.venv/bin/python scripts/first_refits.py [--rate 250] [--seeds 0,1,2] [
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import multiprocessing as mp
 import sys
@@ -33,8 +33,7 @@ from typing import Any
 
 import numpy as np
 
-T0_NS = 1_800_000_000 * 10**9
-"""Host time of the recording's first sample [ns]."""
+ROOT = Path(__file__).resolve().parents[1]
 CHANGES_S = tuple(34.0 + 1.1 * k for k in range(10))
 """Plant times of the change [s]: ten points over one ``watch`` cycle."""
 WATCH_S = (1.0, 15.0)
@@ -46,29 +45,21 @@ SUN, CARRIER3 = "coulomb_friction@sun_shaft", "coulomb_friction@carrier3"
 def window(case: tuple[int, float, float, str]) -> dict[str, Any]:
     """One refit: ``(seed, change time [s], rate [Hz], work root)``."""
     seed, change_at, rate, root = case
-    from dvt_driver.plant.hidden import load_hidden
-    from dvt_driver.plant.offline import run_offline
-    from dvt_driver.run.experiment_core import build
+    sys.path.insert(0, str(ROOT / "tests"))
+    from first_refit_run import friction_step_bag
+
     from dvt_driver.system.bench_loop import live_supervisor
     from dvt_identify.refit import RefitSettings, refit, validation_errors
     from dvt_identify.supervisor import RequestFit
-    from dvt_model.params import load_parameters
-    from dvt_model.recording import write_run
+    from dvt_model.recording import read_run
 
-    hidden = load_hidden("friction_step")
-    hidden = dataclasses.replace(hidden, changes=tuple(
-        dataclasses.replace(c, at=change_at) for c in hidden.changes))
     sv = live_supervisor(rate)
-    exp = dataclasses.replace(
-        build("watch", seed=seed, duration=change_at + float(sv["min_post_change_s"])
-              + WATCH_S[1] + 1.0), sample_period_us=round(1e6 / rate))
-    run = run_offline(exp, load_parameters("physical"), hidden, seed=seed)
     work = Path(root) / f"s{seed}-{change_at:g}"
     work.mkdir(parents=True)
-    stamps = T0_NS + np.round(run.t * 1e9).astype(np.int64)
-    bag = write_run(work / "snapshot", stamps, run.speeds, run.currents,
-                    positions=run.positions)
-    c = T0_NS * 1e-9 + change_at
+    bag, c = friction_step_bag(work, seed, change_at, change_at
+                               + float(sv["min_post_change_s"]) + WATCH_S[1] + 1.0, rate)
+    data = read_run(bag)
+    stamps = data.stamps_ns
     e0 = c + float(sv["settle_s"])
     v1 = c + float(sv["min_post_change_s"])
     e1 = v1 - float(sv["validation_s"])
@@ -84,8 +75,8 @@ def window(case: tuple[int, float, float, str]) -> dict[str, Any]:
     t = stamps * 1e-9
     seg = t >= e0
     new = {**current, **out.new_parameters}
-    ec = validation_errors(current, stamps[seg], run.speeds[seg], run.currents[seg])
-    en = validation_errors(new, stamps[seg], run.speeds[seg], run.currents[seg])
+    ec = validation_errors(current, stamps[seg], data.speeds[seg], data.currents[seg])
+    en = validation_errors(new, stamps[seg], data.speeds[seg], data.currents[seg])
     ts = t[seg]
     watch = (ts >= v1 + WATCH_S[0]) & (ts < v1 + WATCH_S[1])
     row["watch_vs_before"] = np.round(rms(en[watch]) / rms(ec[ts < v1]), 3).tolist()

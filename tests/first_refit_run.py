@@ -31,17 +31,21 @@ CHANGE_AT_S = 6.0
 """When the plant's Coulomb friction steps, from the snapshot's start [s]."""
 
 
-def friction_step_bag(root: Path, seed: int) -> tuple[Path, float]:
-    """The snapshot bag of case ``seed`` under ``root`` and the change time (host time [s])."""
+def friction_step_bag(root: Path, seed: int, change_at: float = CHANGE_AT_S,
+                      duration: float = 12.0, rate: float = 1000.0) -> tuple[Path, float]:
+    """The snapshot bag of case ``seed`` under ``root`` and the change time (host time [s]):
+    ``duration`` [s] of the ``watch`` experiment at controller rate ``rate`` [Hz], the step at
+    plant time ``change_at`` [s] (``scripts/first_refits.py`` varies them)."""
     hidden = load_hidden("friction_step")
     hidden = dataclasses.replace(hidden, changes=tuple(
-        dataclasses.replace(c, at=CHANGE_AT_S) for c in hidden.changes))
-    run = run_offline(build("watch", seed=seed, duration=12.0), load_parameters("physical"),
-                      hidden, seed=seed)
+        dataclasses.replace(c, at=change_at) for c in hidden.changes))
+    exp = dataclasses.replace(build("watch", seed=seed, duration=duration),
+                              sample_period_us=round(1e6 / rate))
+    run = run_offline(exp, load_parameters("physical"), hidden, seed=seed)
     stamps = T0_NS + np.round(run.t * 1e9).astype(np.int64)
     bag = write_run(root / "snapshot", stamps, run.speeds, run.currents,
                     positions=run.positions)
-    return bag, T0_NS * 1e-9 + CHANGE_AT_S
+    return bag, T0_NS * 1e-9 + change_at
 
 
 def first_refit(bag: Path, change: float, work: Path) -> Any:
