@@ -178,9 +178,16 @@ def _row_emps(f: dict[str, Any]) -> tuple[str, str]:
     rows = {r.get("label", ""): r for r in _get(f, "benchmark", "rows") or []}
     ours = next((r for k, r in rows.items() if k.startswith("dvt-identify, chosen")), {})
     lin = next((r for k, r in rows.items() if "linear reference" in k), {})
+    parts = _get(f, "benchmark", "part_fits") or {}
+    whole = next((r for r in parts.get("rows", []) if r.get("part") == "whole record"), {})
+    spread = ("" if not parts else
+              f"; the same structure fitted on other parts of the estimation record "
+              f"{_n(parts.get('test_min_mm'))}-{_n(parts.get('test_max_mm'))} mm, on all of it "
+              f"{_n(whole.get('test_rms_mm'))} mm")
     return ("EMPS (real drive), test record, effects chosen on the estimation record only",
             f"position RMSE {_n(ours.get('test_rms_mm'))} mm; our linear reference "
-            f"{_n(lin.get('test_rms_mm'))} mm; published: LTI 5.53, NARX 5.17, best 2.64 mm")
+            f"{_n(lin.get('test_rms_mm'))} mm; published: LTI 5.53, NARX 5.17, best 2.64 mm"
+            f"{spread}")
 
 
 def _row_identify(f: dict[str, Any]) -> tuple[str, str]:
