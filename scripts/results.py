@@ -176,10 +176,10 @@ def _pair(d: Any, fmt: str = ".2f") -> str:
 
 def _row_emps(f: dict[str, Any]) -> tuple[str, str]:
     rows = {r.get("label", ""): r for r in _get(f, "benchmark", "rows") or []}
-    ours = next((r for k, r in rows.items() if k.startswith("dvt-identify, chosen")), {})
-    lin = next((r for k, r in rows.items() if "linear reference" in k), {})
+    ours: dict[str, Any] = next((r for k, r in rows.items() if k.startswith("dvt-identify, chosen")), {})
+    lin: dict[str, Any] = next((r for k, r in rows.items() if "linear reference" in k), {})
     parts = _get(f, "benchmark", "part_fits") or {}
-    whole = next((r for r in parts.get("rows", []) if r.get("part") == "whole record"), {})
+    whole: dict[str, Any] = next((r for r in parts.get("rows", []) if r.get("part") == "whole record"), {})
     spread = ("" if not parts else
               f"; the same structure fitted on other parts of the estimation record "
               f"{_n(parts.get('test_min_mm'))}-{_n(parts.get('test_max_mm'))} mm, on all of it "

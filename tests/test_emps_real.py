@@ -120,14 +120,14 @@ def test_the_spread_over_parts_of_the_estimation_record_is_measured(
     """examples/emps/README.md's "the figure is fragile": the chosen structure fitted by the
     benchmark's criterion on the whole estimation record, its halves and its quarters (no
     choice on the test record). Refitted on the first 70 %, where the tool fitted it, the tool's
-    model stays where it is (its test figure within 0.1 %). Each half and quarter is described in sample under a
-    millimetre and better than the whole record is by its parameters, the fit on
-    the whole record scores on the whole record what it scored in sample (the same protocol on
+    model stays where it is (its test figure within 0.1 %). Each half and quarter is described
+    in sample under a millimetre and better than the whole record is by its parameters, the fit
+    on the whole record scores on the whole record what it scored in sample (the same protocol on
     the same samples), and the test figures' range is the rows' range."""
     sp = emps["bench"]["part_fits"]
     names = [r["part"] for r in sp["rows"]]
-    assert names == ["first 70 % (the tool's fit)", "whole record", "first half", "second half", "quarter 1", "quarter 2",
-                     "quarter 3", "quarter 4"], names
+    assert names == ["first 70 % (the tool's fit)", "whole record", "first half", "second half",
+                     "quarter 1", "quarter 2", "quarter 3", "quarter 4"], names
     own, whole = sp["rows"][:2]
     ours = next(r for r in emps["bench"]["rows"] if r["label"].startswith("dvt-identify, "))
     assert own["test_rms_mm"] == pytest.approx(ours["test_rms_mm"], rel=1e-3), (own, ours)

@@ -225,7 +225,7 @@ def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment) -> dict
     n = est.t.size
     rows: list[dict[str, Any]] = []
     for name, fa, fb in PARTS:
-        a, b = int(round(fa * n)), int(round(fb * n))
+        a, b = round(fa * n), round(fb * n)
         fit = fit_for_output(model, part(est, a, b), np.clip(theta, lo, hi), lo, hi, 0, N_INIT,
                              model.nx)
         on_est = protocol_score_model(model, fit.theta, est, 0, N_INIT, model.nx)
