@@ -64,6 +64,10 @@ CURRENT_A = 4.0
 SEED = 3100  # first plant seed; fixed before the first run
 STEP = {"sun": 0.05, "carrier3": 0.2}  # N m: the friction step of test_change_detection.py
 STEP_RUNS = 40
+MAX_FALSE_RUNS = 4
+"""Runs of the step scenario allowed a false alarm before the step: 5 or more of 40 fail, with
+probability 0.009 at the rate measured on 185 plants (6 of 185, 3.2 %), 0.37 at 10 %, 0.74 at
+15 % and 0.92 at 20 % (binomial)."""
 STEP_SEED = 4000  # first plant seed of the step runs; fixed before the first run
 MAX_DELAY = 3.0  # detection stamp - true step [s] (as tests/test_change_detection.py)
 LATE_TOL = 0.25  # latest estimated change time after the true one [s] (the same)
@@ -166,8 +170,9 @@ def test_false_alarm_rate_on_the_clean_simulated_plant_meets_the_design() -> Non
 
 
 def test_change_time_estimate_of_a_friction_step() -> None:
-    """The scenario of tests/test_change_detection.py, ``STEP_RUNS`` plants offline: every run
-    without a false alarm before the step detects it within ``MAX_DELAY``, braking
+    """The scenario of tests/test_change_detection.py, ``STEP_RUNS`` plants offline: at most
+    ``MAX_FALSE_RUNS`` of them raise a false alarm before the step; every other run detects it
+    within ``MAX_DELAY``, braking
     (direction -1), never estimating the change later than ``LATE_TOL``; the estimate is within
     ``WITHIN`` of the truth in a fraction of the runs consistent with ``WITHIN_AT_LEAST``
     (two-sided 95 % Clopper-Pearson upper bound): earlier estimates come from a CUSUM that had
@@ -203,5 +208,5 @@ def test_change_time_estimate_of_a_friction_step() -> None:
           f"(0/5/50/95/100 %) {np.round(np.percentile(off, [0, 5, 50, 95, 100]), 2).tolist()} s; "
           f"within {WITHIN} s in {k}/{n} (95 % {lo:.2f}-{hi:.2f})")
     assert not problems, "\n".join(problems)
-    assert n >= STEP_RUNS // 2, (n, false_runs)
+    assert false_runs <= MAX_FALSE_RUNS, (false_runs, STEP_RUNS)
     assert hi >= WITHIN_AT_LEAST, (k, n, lo, hi)

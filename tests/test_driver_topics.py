@@ -413,11 +413,13 @@ def test_commands_limits_and_watchdog(procs: Any, harness: Harness, tmp_path: Pa
     # A trip is the plant's own when the plant process itself stalled that long: it then
     # catches up with a burst of up to 200 samples (0.2 s of controller time) before it reads
     # the keep-alives waiting on the line (dvt_driver.plant.server, _MAX_CATCH_UP), which a
-    # loaded 2-core machine can cause; the driver is not at fault then.
+    # loaded 2-core machine can cause; the driver is not at fault then. The plant counts each
+    # such trip (one at least 90 % of the timeout into a burst): every other trip fails.
     stats = _plant_stats(procs, plant)
-    print(f"plant: watchdog trips {stats['watchdog_trips']}, longest catch-up burst "
+    print(f"plant: watchdog trips {stats['watchdog_trips']} ("
+          f"{stats['watchdog_trips_in_catch_up']} in its own catch-up), longest catch-up burst "
           f"{stats['max_burst']} samples, late samples {stats['late_samples']}")
-    assert stats["watchdog_trips"] == 0 or stats["max_burst"] >= 180, stats
+    assert stats["watchdog_trips"] == stats["watchdog_trips_in_catch_up"], stats
 
 
 def test_link_faults_are_survived(procs: Any, harness: Harness, tmp_path: Path) -> None:

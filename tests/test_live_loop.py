@@ -231,11 +231,16 @@ def _episode(procs: Any, loop: _Loop, tmp: Path, hidden: list[str], repeat: int,
     return loop.episodes[-1], change
 
 
+def _alarm(change: float) -> Alarm:
+    """The alarm the tests publish for a change at ``change`` [s], as the model node would."""
+    return Alarm(stamp_s=change + 1.5, change_s=change, output=1, name="carrier3",
+                 direction=1, statistic=150.0, threshold=110.0, samples=1500, shift=0.05,
+                 shift_sigma=1.0, level=0.0, sigma=0.05)
+
+
 def _publish_alarm(loop: _Loop, change: float) -> None:
     """The alarm as the model node would publish it (and three malformed ones first)."""
-    alarm = Alarm(stamp_s=change + 1.5, change_s=change, output=1, name="carrier3",
-                  direction=1, statistic=150.0, threshold=110.0, samples=1500, shift=0.05,
-                  shift_sigma=1.0, level=0.0, sigma=0.05)
+    alarm = _alarm(change)
     for bad in ("not json", json.dumps({"change_s": "soon", "stamp_s": 1.0}), "[1, 2]"):
         loop.alarm.publish(String(data=bad))  # refused with a warning, never a crash
     loop.alarm.publish(String(data=alarm.to_json()))
@@ -327,7 +332,7 @@ def test_false_alarm_on_a_good_model_is_not_pushed(procs, rclpy_context, tmp_pat
     assert rep["outcome"] == "not_better", (rep["outcome"], rep["reason"])
     assert not rep["pushed"] and not rep["rolled_back"]
     assert rep["test"]["relative_gain"] < 0.25, rep["test"]
-    assert rep["alarms"] == [json.loads(rep["alarms"][0] and json.dumps(rep["alarms"][0]))]
+    assert rep["alarms"] == [json.loads(_alarm(change).to_json())], rep["alarms"]
     loop.spin_until(lambda: any(v.get("bad_alarms") == "3" for _, _, v in loop.steps), 5.0,
                     "the count of refused alarms on /diagnostics")
     value = _get(loop.listener, "dvt_model", ["M", "effects"])

@@ -337,9 +337,34 @@ def test_no_prior_is_a_nominal_or_drawn_plant_value() -> None:
     assert gaps and backlash.gap not in gaps, gaps
 
 
+NOT_DRAWN = {"g", "efficiency", "velocity_eps", "stage"}
+"""Leaves of a position preset that a draw keeps: constants of physics and of the plant's
+numerics, and the ripple's stage (discrete: the identifier tries every stage)."""
+
+
+def _leaves(m: object, path: str = "") -> dict[str, object]:
+    if isinstance(m, dict):
+        out: dict[str, object] = {}
+        for k, v in m.items():
+            out.update(_leaves(v, f"{path}.{k}" if path else str(k)))
+        return out
+    return {path: m}
+
+
 def test_the_drawn_plants_differ_from_the_nominal_presets() -> None:
-    """The draws the tests use are draws: each differs from the preset's fixed (nominal)
-    values, so no value the identifier could carry as a prior is the truth by construction."""
+    """The draws the tests use are draws: every drawn magnitude, length, angle and reduction
+    differs from the preset's fixed (nominal) value, and the arm's drawn reduction is not one
+    of the reductions the description scans, so no value the identifier could carry as a
+    prior or a scan point is the truth by construction."""
     for preset in ("gravity_arm", "mesh_ripple", "position_friction"):
-        drawn = load_hidden(preset, draw=DRAW).to_mapping()
-        assert drawn != load_hidden(preset).to_mapping(), preset
+        drawn = _leaves(load_hidden(preset, draw=DRAW).to_mapping())
+        nominal = _leaves(load_hidden(preset).to_mapping())
+        assert drawn.keys() == nominal.keys(), preset
+        same = [k for k in drawn if drawn[k] == nominal[k]
+                and k.rsplit(".", 1)[-1] not in NOT_DRAWN]
+        assert not same, (preset, same)
+    arm = load_hidden("gravity_arm", draw=DRAW).gravity_arm
+    assert arm is not None
+    scanned = [c.options["reductions"] for c in load_description("dvt").make_candidates()
+               if c.name == "gravity_load"]
+    assert scanned and all(arm.stage.reduction not in r for r in scanned), scanned

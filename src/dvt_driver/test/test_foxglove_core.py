@@ -243,7 +243,7 @@ def test_convert_bag_writes_every_channel_of_the_bag(tmp_path: Path) -> None:
 
     bag = ROOT / "bags" / "thesis-none"  # recorded with the model node
     if not (bag / "metadata.yaml").exists():
-        pytest.skip(f"{bag} is not in this checkout")
+        pytest.fail(f"{bag}: committed bag missing (a broken checkout)")
     out = tmp_path / "x.mcap"
     counts = convert_bag(bag, out, fc.parse_settings({"rate_hz": 20.0}))  # bag: 62.5 Hz
     assert counts[JOINT_STATES] > 10 and abs(counts[CURRENTS] - counts[JOINT_STATES]) <= 2

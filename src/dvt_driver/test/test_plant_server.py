@@ -44,7 +44,7 @@ WAIT = 10.0  # s: upper bound of any single wait (tests poll with a deadline)
 def _plant_script() -> str:
     path = Path(sys.executable).parent / "dvt-plant"
     if not path.exists():
-        pytest.skip(f"console script {path} not installed")
+        pytest.fail(f"console script {path} not installed (scripts/bootstrap.sh installs it)")
     return str(path)
 
 
@@ -377,3 +377,31 @@ def test_plant_refuses_an_unknown_load(tmp_path: Path) -> None:
     proc = subprocess.run([_plant_script(), "--link", str(tmp_path / "l"), "--load", "piano"],
                           capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 2 and "piano" in proc.stderr
+
+
+def test_a_watchdog_trip_is_told_apart_from_the_plants_own_stall(
+        plants: Callable[..., Plant]) -> None:
+    """Two trips of the controller's watchdog (0.2 s): one from the host's silence (no keep-
+    alive for 0.5 s while the plant runs), one from the plant's own stall (SIGSTOP for 0.5 s
+    while the host keeps sending: the plant reads the waiting commands, then catches up with a
+    burst longer than the timeout). Only the second counts in
+    ``watchdog_trips_in_catch_up``, the count ``tests/test_driver_topics.py`` excuses."""
+    plant = plants("--seed", "1")
+    c = Client(plant.link)
+    c.send(Hello())
+    c.pump(WAIT, until=lambda: any(isinstance(m, HelloAck) for m in c.others))
+    cmd = Command(1, Mode.CURRENT, 0.5, (0.0, 0.0, 0.0))
+    c.pump(0.5, keepalive=cmd)
+    c.pump(0.5)  # the host's silence: a trip while the plant runs
+    c.pump(0.5, keepalive=cmd)
+    plant.signal(signal.SIGSTOP)  # the plant's own stall, the host keeps sending
+    try:
+        c.pump(0.5, keepalive=cmd)
+    finally:
+        plant.signal(signal.SIGCONT)
+    c.pump(0.5, keepalive=cmd)
+    c.close()
+    stats = plant.stop()
+    assert stats["watchdog_trips"] == 2, stats
+    assert stats["watchdog_trips_in_catch_up"] == 1, stats
+    assert stats["max_burst"] >= 180, stats

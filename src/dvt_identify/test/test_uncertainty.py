@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import binomtest
 
 from dvt_identify.uncertainty import (
     UncertaintyError,
@@ -43,8 +44,16 @@ def _regression(rng: np.random.Generator, n: int, rho: float) -> tuple[np.ndarra
     return -X, r, bh - beta
 
 
+COVERAGE_CLAIM = (0.90, 0.95)
+"""Coverage of the sandwich's nominal 95 % intervals that the test claims under AR(0.9) noise
+(the HAC window is biased low under strong colour; measured 272 and 275 of 300)."""
+
+
 def test_coverage_with_coloured_noise() -> None:
-    """Naive intervals are far too narrow for AR(1) noise; the sandwich's hold (~95 %)."""
+    """Naive intervals are far too narrow for AR(1) noise; the sandwich's cover the truth at a
+    rate consistent with :data:`COVERAGE_CLAIM` (two-sided 95 % Clopper-Pearson interval of 300
+    runs meets it: 259 to 292 inside pass; a std reported 35 % too small, coverage 0.80, fails
+    with probability above 0.99)."""
     rng = np.random.default_rng(1)
     reps, n = 300, 2000
     hit_sandwich = np.zeros(2)
@@ -54,11 +63,10 @@ def test_coverage_with_coloured_noise() -> None:
         cov = sandwich_covariance(J, r, ny=1, seg_sizes=[n])
         hit_sandwich += np.abs(err) <= 1.96 * cov.std
         hit_naive += np.abs(err) <= 1.96 * cov.naive_std
-    cov_s = hit_sandwich / reps
+    for k in hit_sandwich:
+        ci = binomtest(int(k), reps).proportion_ci(0.95, method="exact")
+        assert ci.high >= COVERAGE_CLAIM[0] and ci.low <= COVERAGE_CLAIM[1], (k, reps, ci)
     cov_n = hit_naive / reps
-    # 300 repetitions: binomial standard error of a 95 % coverage is 1.3 points
-    assert np.all(cov_s >= 0.88), cov_s
-    assert np.all(cov_s <= 0.99), cov_s
     assert np.all(cov_n < 0.75), cov_n
 
 

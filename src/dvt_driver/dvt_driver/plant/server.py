@@ -109,6 +109,11 @@ __all__ = ["FaultInjector", "PlantServer", "PtyPort", "build_parser", "main"]
 
 _READ_CHUNK = 4096
 _MAX_CATCH_UP = 200  # samples produced in one go before the loop serves I/O again
+_OWN_STALL = 0.9
+"""A watchdog trip counts in ``watchdog_trips_in_catch_up`` when the plant read the last command
+before it while at least this share of the watchdog timeout behind its schedule: a command is
+stamped with the controller clock at reading, so a stall of the plant itself ages it by that
+much."""
 
 
 class PtyPort:
@@ -253,6 +258,7 @@ class PlantServer:
             "samples_produced": 0, "samples_sent": 0, "samples_lost_offline": 0,
             "tx_overruns": 0, "host_overruns": 0, "frames_received": 0, "replies_sent": 0,
             "disconnects": 0, "resets": 0, "max_burst": 0, "late_samples": 0,
+            "watchdog_trips_in_catch_up": 0,
             "changes_applied": 0, "change_requests_refused": 0,
         }
 
@@ -418,6 +424,7 @@ class PlantServer:
         anchor_wall, anchor_us = start, sim.t_us
         disconnect_at = self.disconnect_at
         reset_at = self.reset_at
+        command_lag = 0.0  # [s] how far behind schedule the plant was when it last read a command
         try:
             while not self._stop:
                 now = time.monotonic()
@@ -436,7 +443,10 @@ class PlantServer:
                         self._disconnect(now)
                 if self._port_back_at is not None and now >= self._port_back_at:
                     self._reconnect(now)
+                accepted = sim.commands_accepted
                 self._read()
+                if sim.commands_accepted != accepted:
+                    command_lag = now - (anchor_wall + (sim.t_us - anchor_us) * 1e-6)
                 # produce every due sample (absolute deadlines)
                 deadline = anchor_wall + (sim.t_us - anchor_us) * 1e-6
                 produced = 0
@@ -452,7 +462,14 @@ class PlantServer:
                         self._read_change()
                     streaming = sim.session_open
                     n_applied = len(sim.changes_applied)
+                    trips = sim.watchdog_trips
                     values = sim.tick()
+                    if (sim.watchdog_trips != trips
+                            and command_lag >= _OWN_STALL * sim.limits.watchdog_timeout):
+                        # the last command was read when the plant was that far behind its
+                        # schedule (stamped with a clock that late): its own stall, caught up
+                        # in a burst, not the host's silence
+                        self.counters["watchdog_trips_in_catch_up"] += 1
                     if len(sim.changes_applied) != n_applied:  # wall time of this sample
                         self._note_changes(time.time() - (time.monotonic() - deadline))
                     self.counters["samples_produced"] += 1
