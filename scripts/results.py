@@ -77,7 +77,8 @@ def emps() -> tuple[list[str], dict[str, Any]]:
     figures = {"summary": r.stdout.strip().splitlines(), "benchmark": bench,
                "accepted": bench["accepted"], "linear_reference": rep.get("linear_reference"),
                "final_parameters": rep["final"]["parameters"],
-               "records_agree": rep.get("records_agree")}
+               "records_agree": rep.get("records_agree"),
+               "test_spread": rep.get("test_spread")}
     return [*cmd[:2], "OUTDIR"], figures
 
 

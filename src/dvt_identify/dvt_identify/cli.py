@@ -112,7 +112,9 @@ def output_units(result: IdentificationResult) -> list[str]:
 def summary_lines(result: IdentificationResult) -> list[str]:
     """What ``dvt-identify`` prints when done: the test figures first (when test bags were
     given: RMSE in the output's unit and fit, the final model and the linear reference side
-    by side), then the selection figures and the accepted effects."""
+    by side, then the same figure of the final model refitted on each half of its estimation
+    data: how much it depends on them), then the selection figures and the accepted
+    effects."""
     fin = result.final
     units = output_units(result)
     ref = result.reference
@@ -128,6 +130,12 @@ def summary_lines(result: IdentificationResult) -> list[str]:
                         f"{t.reference.fit_percent[j]:.2f} %)").replace("  ", " ")
             parts.append(txt)
         lines.append("test (no part in any choice): " + "; ".join(parts))
+        sp = getattr(result, "spread", None)
+        if sp is not None:
+            lines.append("test, the final model refitted on each half of its estimation data: "
+                         + "; ".join(f"{n} RMSE " + " / ".join(
+                             f"{f.rmse[j]:.4g}" for _, f in sp.parts) + f" {units[j]}".rstrip()
+                             for j, n in enumerate(sp.output_names)))
     acc = [d.score.label for d in result.accepted] or ["none"]
     sel = {"validation": "validation fit (selection)",
            "holdout": "held-out fit (selection)",

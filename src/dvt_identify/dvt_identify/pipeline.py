@@ -270,6 +270,14 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
             say(f"records not compared: {exc}")
         if result.agreement is not None and result.agreement.disagree:
             _offer_carrier(result, test, init_window, desc.structure.force_unit, say)
+        try:
+            from dvt_identify.spread import figure_spread
+
+            result.spread = figure_spread(result.final.fit, test, init_window)
+            say(result.spread.statement)
+        except DvtIdentifyError as exc:
+            result.notes.append(f"Test figure's spread not measured: {exc}")
+            say(result.notes[-1])
         say("test fit (no part in any choice): " + ", ".join(
             f"{n} {b:.2f} % -> {f:.2f} %" for n, b, f in zip(
                 result.test.final.output_names, result.test.baseline.fit_percent,

@@ -143,7 +143,13 @@ class TestFigures:
                                      else None)}
 
 
-def _predict(fit: OEFit, seg: Segment, init_window: int) -> Array:
+def predict_test(fit: OEFit, seg: Segment, init_window: int) -> Array:
+    """``fit``'s simulated outputs on test segment ``seg`` (N, ny): the initial state from the
+    first ``init_window`` samples (0: from the whole segment), the parameters fixed.
+
+    Raises:
+        DataError: the window leaves fewer than 10 samples to score.
+    """
     if init_window:
         if init_window >= seg.n - 10:
             raise DataError(f"{seg.name}: init window {init_window} samples leaves fewer than "
@@ -166,8 +172,8 @@ def evaluate_test(baseline: OEFit, final: OEFit, test: Sequence[Segment],
     if not test:
         raise DataError("no test segments")
     w = max(0, int(init_window))
-    bp = [_predict(baseline, s, w) for s in test]
-    fp = [_predict(final, s, w) for s in test]
+    bp = [predict_test(baseline, s, w) for s in test]
+    fp = [predict_test(final, s, w) for s in test]
     names = test[0].output_names
     ys = [s.y[w:] for s in test]
     ref = None

@@ -234,6 +234,9 @@ class IdentificationResult:
     carrier: Any = None
     """The final model carrying the disagreement, scored on the test records, chosen on
     estimation data (:class:`dvt_identify.carrier.CarrierOffer`; ``None``: the records agree)."""
+    spread: Any = None
+    """The test figure beside those of the final model refitted on each half of its estimation
+    data (:class:`dvt_identify.spread.FigureSpread`; ``None`` without test records)."""
     selection: str = "validation"
     """Which data chose the effects: ``validation`` (the validation bags), ``holdout`` (the
     held-out end of each estimation segment) or ``cv`` (leave-one-bag-out cross-validation

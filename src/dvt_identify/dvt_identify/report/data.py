@@ -430,6 +430,8 @@ def build_report(result: IdentificationResult) -> dict[str, Any]:
                           is not None else None),
         "records_carrier": (result.carrier.as_dict() if getattr(result, "carrier", None)
                             is not None else None),
+        "test_spread": (result.spread.as_dict() if getattr(result, "spread", None)
+                        is not None else None),
     }
     if rep["candidates"] is None:
         del rep["candidates"]

@@ -181,6 +181,9 @@ def build_markdown(rep: dict[str, Any], plots: Sequence[Path]) -> str:
             lines += ["", ("**" + ag["statement"] + "**") if ag["disagree"]
                       else ag["statement"]]
         lines += _carrier_lines(rep.get("records_carrier"), rep["outputs"])
+        sp = rep.get("test_spread")
+        if sp:
+            lines += ["", sp["statement"]]
     lines += ["", "## Parameters (final model)", "",
               "| parameter | value | std dev | relative std % |", "|---|---|---|---|"]
     rel = f.get("parameter_relative_std") or {}
