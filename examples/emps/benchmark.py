@@ -206,12 +206,6 @@ PARTS: tuple[tuple[str, float, float], ...] = (
 :func:`part_fits` fits the chosen structure on."""
 
 
-def part(seg: Segment, a: int, b: int) -> Segment:
-    """Samples ``a:b`` of a record as a segment of its own (time from 0)."""
-    return make_segment(f"{seg.name}[{a}:{b}]", seg.t[a:b] - seg.t[a], seg.u[a:b], seg.y[a:b],
-                        seg.input_names, seg.output_names)
-
-
 def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment) -> dict[str, Any]:
     """How far the test figure moves with the part of the estimation record the parameters come
     from: the tool's chosen structure fitted by the benchmark's own criterion
@@ -226,7 +220,8 @@ def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment) -> dict
     rows: list[dict[str, Any]] = []
     for name, fa, fb in PARTS:
         a, b = round(fa * n), round(fb * n)
-        fit = fit_for_output(model, part(est, a, b), np.clip(theta, lo, hi), lo, hi, 0, N_INIT,
+        seg = est.rows(a, b, name=f"{est.name}[{a}:{b}]", from_zero=True)
+        fit = fit_for_output(model, seg, np.clip(theta, lo, hi), lo, hi, 0, N_INIT,
                              model.nx)
         on_est = protocol_score_model(model, fit.theta, est, 0, N_INIT, model.nx)
         on_test = protocol_score_model(model, fit.theta, test, 0, N_INIT, model.nx)
