@@ -146,19 +146,38 @@ def differenced_base(fit: OEFit, segments: Sequence[Segment]) -> list[Array]:
 
 
 def column(model: OEModel, theta: Array, segments: Sequence[Segment], x0s: Sequence[Array],
-            base: Sequence[Array], w: Array, idx: int, h: float) -> Array:
+            base: Sequence[Array], w: Array, idx: int, h: float,
+            states: Sequence[Array] | None = None) -> Array:
+    """The scoring column of parameter ``idx``: the weighted output change per unit of a step
+    ``h`` from ``theta``, over every segment stacked, shape (sum N ny,); zeros where the
+    probe diverges. ``states`` (each (N, nx)): the segments' states at ``theta``, for a
+    parameter that moves no state (:meth:`~dvt_identify.effects.Effect.output_only`): then
+    only the output maps are evaluated again."""
     th = theta.copy()
     th[idx] += h
     parts = []
-    for seg, x0, y0 in zip(segments, x0s, base, strict=True):
+    for k, (seg, x0, y0) in enumerate(zip(segments, x0s, base, strict=True)):
         try:
             with np.errstate(all="ignore"):
-                yh = model.simulate(th, seg, x0)
+                yh = (model.simulate(th, seg, x0) if states is None
+                      else model.outputs_of(th, seg, states[k]))
         except DivergedError:  # the probe left the simulable region: no information
             return np.zeros(sum(s.y.size for s in segments))
         parts.append(((yh - y0) / w).ravel() / h)
     col = np.concatenate(parts)
     return col if np.all(np.isfinite(col)) else np.zeros_like(col)
+
+
+def _states(model: OEModel, theta: Array, segments: Sequence[Segment], x0s: Sequence[Array]
+            ) -> list[Array] | None:
+    """Each segment's simulated states (N, nx) at ``theta``; ``None`` where a simulation
+    diverges (the columns then simulate each probe and score it 0)."""
+    try:
+        with np.errstate(all="ignore"):
+            return [model.simulate_states(theta, s, x0)[0]
+                    for s, x0 in zip(segments, x0s, strict=True)]
+    except DivergedError:
+        return None
 
 
 def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequence[Effect],
@@ -187,6 +206,8 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
         t0 = time.monotonic()
         best: CandidateScore | None = None
         variants: list[dict[str, object]] = []
+        states: list[Array] | None = None
+        one_simulation = cand.output_only()
         for vlabel, shape in cand.variants(view):
             null = cand.null_vector()
             # a variant value for a gain is its secant probe (an effect that is not
@@ -197,6 +218,11 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                     null[cand.pindex(name)] = v
             model, theta = candidate_theta(fit, cand, null)
             off = len(fit.theta_)
+            if one_simulation:
+                # its parameters move no state: one simulation serves every variant and gain
+                # (a compliant play scans 80 variants)
+                states = _states(model, theta, segments, fit.x0_)
+                one_simulation = False
             cols, steps = [], []
             for gname in cand.gain_names():
                 gi = cand.pindex(gname)
@@ -213,7 +239,8 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                     # up (e.g. quadratic drag at hundreds of rad/s), so shrink until it is finite
                     h = 1.0
                     for _ in range(8):
-                        col = column(model, theta, segments, fit.x0_, diffed, w, off + gi, h)
+                        col = column(model, theta, segments, fit.x0_, diffed, w, off + gi, h,
+                                     states)
                         rms = float(np.sqrt(np.mean(col ** 2)))
                         if rms > 0:
                             h = 1e-3 / rms
@@ -221,7 +248,8 @@ def score_candidates(fit: OEFit, segments: Sequence[Segment], candidates: Sequen
                         h *= 1e-3
                 if null[gi] + h > spec.upper:
                     h = -h
-                cols.append(column(model, theta, segments, fit.x0_, diffed, w, off + gi, h))
+                cols.append(column(model, theta, segments, fit.x0_, diffed, w, off + gi, h,
+                                   states))
                 steps.append(h)
             Z = np.column_stack(cols)
             Zp = span.complement(Z)

@@ -428,9 +428,25 @@ class OEModel:
     def outputs(self, pr: Prepared, x: Array) -> Array:
         """Outputs (N, ny) of states ``x`` (N, nx): ``y = C x`` then the effects' output maps
         at the parameters of ``pr``."""
-        y = lag_outputs(x if self.C is None else x @ self.C.T, pr.out_lag, pr.dt)
-        for e, p in zip(self.effects, pr.ps, strict=True):
-            yt = e.output_transform(p, y, pr.dt)
+        return self._outputs(pr.ps, pr.out_lag, pr.dt, x)
+
+    def outputs_of(self, theta: Array, seg: Segment, x: Array) -> Array:
+        """Outputs (N, ny) of states ``x`` (N, nx) simulated on ``seg``, with the effects'
+        output maps at ``theta`` (p,): for parameters that move no state
+        (:meth:`Effect.output_only`), one simulation serves every value of theirs.
+
+        Raises:
+            FitError: ``theta`` has the wrong length.
+        """
+        if theta.shape != (len(self.specs),):
+            raise FitError(f"theta: expected shape ({len(self.specs)},), got {theta.shape}")
+        return self._outputs(self.effect_params(theta), seg.output_lag, seg.dt, x)
+
+    def _outputs(self, ps: Sequence[Array], out_lag: Sequence[float] | None, dt: float,
+                 x: Array) -> Array:
+        y = lag_outputs(x if self.C is None else x @ self.C.T, out_lag, dt)
+        for e, p in zip(self.effects, ps, strict=True):
+            yt = e.output_transform(p, y, dt)
             if yt is not None:
                 y = yt
         return y

@@ -144,3 +144,64 @@ def test_make_effect_errors_and_vocabulary() -> None:
     c = make_effect("coulomb_friction", "v", STATES, INPUTS, suffix="_v")
     assert [p.name for p in c.params] == ["Fc_v", "offset_v"]
     assert c.derived({"Fc_v": 2.0, "offset_v": 0.5}) == {"Fc+_v": 2.5, "Fc-_v": 1.5}
+
+
+def output_effects() -> list[Effect]:
+    """The output maps among the candidates, with a rigid and a compliant play on the output
+    (a play is an output map there, an input map on ``force``)."""
+    return ([c for c in candidates() if c.output_only()]
+            + [make_effect("backlash", "v", STATES, INPUTS, "N", "m/s", options=o)
+               for o in ({}, {"compliant": True, "wn_scan": [300.0, 600.0],
+                              "zeta_scan": [0.1, 0.4], "gap_scan": [0.01, 0.02]})])
+
+
+def test_output_only_effects_move_no_state() -> None:
+    """An effect that says it acts on the outputs only leaves the simulated states as they are
+    whatever its parameters: the premise of scoring it on one simulation."""
+    seg, _ = synthetic("backlash")
+    effects = output_effects()
+    assert {e.name for e in effects} == {"measurement_delay", "sensor_gain", "backlash"}
+    assert all(e.output_only() for e in effects)
+    assert not any(c.output_only() for c in candidates()
+                   if c.name not in {"measurement_delay", "sensor_gain"})
+    for e in effects:
+        model = OEModel(structure(""), [e])
+        theta = np.concatenate([[10.0, 20.0], e.null_vector()])
+        moved = theta.copy()
+        moved[2:] += [0.5 * (s.upper - s.initial) if np.isfinite(s.upper) else 1.0
+                      for s in e.params]
+        x0 = np.array([0.3])
+        x_null, y_null = model.simulate_states(theta, seg, x0)
+        x_moved, y_moved = model.simulate_states(moved, seg, x0)
+        np.testing.assert_array_equal(x_null, x_moved, err_msg=e.label())
+        assert not np.array_equal(y_null, y_moved), e.label()
+        np.testing.assert_array_equal(model.outputs_of(moved, seg, x_null), y_moved)
+
+
+def test_output_maps_score_on_one_simulation(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Scored on one simulation of the states (each variant and probe only maps the outputs
+    again), an output map's scores are those of a simulation per probe, with far fewer
+    simulations (the compliant play scans 8 variants here)."""
+    seg, kind = synthetic("measurement_delay")
+    fit = OEFit(OEModel(structure(kind)), starts=1).fit([seg])
+    calls = {"n": 0}
+    real = OEModel.simulate_states
+
+    def counted(self: OEModel, *a: object, **k: object) -> tuple[np.ndarray, np.ndarray]:
+        calls["n"] += 1
+        return real(self, *a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(OEModel, "simulate_states", counted)
+    monkeypatch.setenv("DVT_IDENTIFY_WORKERS", "1")  # every simulation in this process
+    effects = output_effects()
+    fast = {s.label: s for s in score_candidates(fit, [seg], effects)}
+    n_fast = calls["n"]
+    calls["n"] = 0
+    monkeypatch.setattr(Effect, "output_only", classmethod(lambda cls: False))
+    slow = {s.label: s for s in score_candidates(fit, [seg], effects)}
+    assert sorted(fast) == sorted(slow)
+    for label, s in slow.items():
+        assert fast[label].r2 == pytest.approx(s.r2, rel=1e-12, abs=1e-15), label
+        assert fast[label].variant == s.variant, label
+    # the compliant play's 8 variants take 1 simulation instead of 8
+    assert calls["n"] - n_fast >= 7, (n_fast, calls["n"])

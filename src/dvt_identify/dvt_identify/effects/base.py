@@ -343,6 +343,17 @@ class Effect:
         the baseline drifts)."""
         return False
 
+    @classmethod
+    def output_only(cls) -> bool:
+        """Whether the effect acts on the outputs only: it has an output map
+        (:meth:`output_transform`) and none of the parts that move the states (an input
+        transform, a member force, a smooth law, a dry capacity, a break-away), so its
+        parameters leave the simulated states as they are."""
+        moving = ("input_transform", "exogenous_force", "smooth_law", "dry_capacity",
+                  "breakaway")
+        own = cls.output_transform is not Effect.output_transform
+        return own and all(getattr(cls, n) is getattr(Effect, n) for n in moving)
+
     # -- construction ----------------------------------------------------------------------
     @classmethod
     def accepts(cls, ctx: BuildContext) -> bool:
