@@ -185,10 +185,18 @@ def _row_emps(f: dict[str, Any]) -> tuple[str, str]:
               f"; the same structure fitted on other parts of the estimation record "
               f"{_n(parts.get('test_min_mm'))}-{_n(parts.get('test_max_mm'))} mm, on all of it "
               f"{_n(whole.get('test_rms_mm'))} mm")
+    ts = f.get("test_spread") or {}
+
+    def halves(key: str) -> str:
+        return " / ".join(_n(1000 * p["rmse"]["position"]) for p in ts.get(key, [])
+                          if "rmse" in p)
+    tool_halves = ("" if not ts.get("reference_parts") else
+                   f"; refitted on each half (the tool's spread): {halves('parts')} mm, the "
+                   f"linear reference {halves('reference_parts')} mm")
     return ("EMPS (real drive), test record, effects chosen on the estimation record only",
             f"position RMSE {_n(ours.get('test_rms_mm'))} mm; our linear reference "
             f"{_n(lin.get('test_rms_mm'))} mm; published: LTI 5.53, NARX 5.17, best 2.64 mm"
-            f"{spread}")
+            f"{spread}{tool_halves}")
 
 
 def _row_identify(f: dict[str, Any]) -> tuple[str, str]:

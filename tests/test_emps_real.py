@@ -149,7 +149,10 @@ def test_the_report_prints_the_test_figure_s_spread_beside_it(emps: dict[str, An
     final model refitted on each half of its estimation data (the first 70 % of the record),
     scored like the test figure. Its final row is the test figure itself; on these records
     each half's refit scores worse on the test record than the whole fit (measured 2026-12-06:
-    7.07 and 12.16 mm against 4.56)."""
+    7.07 and 12.16 mm against 4.56). The linear reference, refined on the same halves and
+    scored like its own test figure, spreads wider (7.63 and 16.38 mm against 5.27): the
+    fragility is the records', and the physical model's largest figure is the smaller one
+    (docs: dvt_identify.spread, examples/emps/README.md)."""
     second = emps["stdout"].splitlines()[1]
     assert second.startswith("test, the final model refitted on each half of its estimation "
                              "data: position RMSE "), emps["stdout"]
@@ -161,3 +164,9 @@ def test_the_report_prints_the_test_figure_s_spread_beside_it(emps: dict[str, An
     assert min(halves) > tool, (halves, tool)
     assert sp["rmse_range"]["position"] == [tool, max(halves)], sp
     assert sp["statement"] in emps["md"]
+    ref = emps["report"]["test"]["linear_reference"]["rmse"]["position"]
+    assert sp["reference"]["rmse"]["position"] == pytest.approx(ref, rel=1e-12), sp
+    rhalves = [p["rmse"]["position"] for p in sp["reference_parts"]]
+    assert min(rhalves) > ref, (rhalves, ref)
+    assert max(halves) < max(rhalves), (halves, rhalves)
+    assert "(linear reference likewise: " in second, second

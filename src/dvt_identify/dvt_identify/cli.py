@@ -50,6 +50,7 @@ from dvt_identify.description import DEFAULT_DESCRIPTION
 from dvt_identify.errors import DvtIdentifyError
 from dvt_identify.identifiability import Identifiability
 from dvt_identify.loop import IdentificationResult
+from dvt_identify.metrics import Figures
 from dvt_identify.pipeline import TerminalProgress, check_recording, run
 from dvt_model.progress import ProgressLine
 
@@ -132,9 +133,17 @@ def summary_lines(result: IdentificationResult) -> list[str]:
         lines.append("test (no part in any choice): " + "; ".join(parts))
         sp = getattr(result, "spread", None)
         if sp is not None:
+            def halves(fs: Sequence[object], j: int) -> str:
+                return " / ".join(f"{f.rmse[j]:.4g}" if isinstance(f, Figures) else "-"
+                                  for f in fs)
+
             lines.append("test, the final model refitted on each half of its estimation data: "
-                         + "; ".join(f"{n} RMSE " + " / ".join(
-                             f"{f.rmse[j]:.4g}" for _, f in sp.parts) + f" {units[j]}".rstrip()
+                         + "; ".join(
+                             f"{n} RMSE {halves([f for _, f in sp.parts], j)} {units[j]}"
+                             .rstrip()
+                             + (f" (linear reference likewise: "
+                                f"{halves([f for _, f in sp.reference_parts], j)})"
+                                if sp.reference is not None else "")
                              for j, n in enumerate(sp.output_names)))
     acc = [d.score.label for d in result.accepted] or ["none"]
     sel = {"validation": "validation fit (selection)",

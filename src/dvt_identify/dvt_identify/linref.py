@@ -79,6 +79,13 @@ class ReferenceStage:
                                    "theta": s.theta.tolist()} for s in self.starts]}
 
 
+def reference_data(segs: Sequence[Segment], init_window: int) -> list[Segment]:
+    """The reference's estimation data of the physical fit's ``segs``: as they are with a
+    state-initialisation window (it counts samples at the recording's rate), else thinned
+    (:data:`MAX_SAMPLES`, :data:`MAX_THIN`, :data:`MAX_TOTAL`)."""
+    return list(segs) if init_window > 0 else _thin(segs)
+
+
 def _thin(segs: Sequence[Segment]) -> list[Segment]:
     """The reference's estimation data (:data:`MAX_SAMPLES`, :data:`MAX_THIN`,
     :data:`MAX_TOTAL`)."""
@@ -108,8 +115,7 @@ def fit_reference(fit_segs: Sequence[Segment], val: Sequence[Segment], init_wind
         FitError, DataError: the reference could not be fitted (the caller notes it and goes
             on without one).
     """
-    # a state-initialisation window counts samples at the recording's rate: no thinning then
-    est = list(fit_segs) if init_window > 0 else _thin(fit_segs)
+    est = reference_data(fit_segs, init_window)
     if cross_validate:
         fit_part, sel = [], []
         for s in est:

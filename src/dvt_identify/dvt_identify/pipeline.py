@@ -273,7 +273,9 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         try:
             from dvt_identify.spread import figure_spread
 
-            result.spread = figure_spread(result.final.fit, test, init_window)
+            result.spread = figure_spread(
+                result.final.fit, test, init_window,
+                reference=result.reference.model if result.reference is not None else None)
             say(result.spread.statement)
         except DvtIdentifyError as exc:
             result.notes.append(f"Test figure's spread not measured: {exc}")

@@ -50,6 +50,7 @@ state poorly, so the short window's error grows along the record.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Sequence
@@ -249,6 +250,40 @@ class LinearReference:
             0 if self.init_window > 0 else len(est) * chosen.order)
         self.seconds_ = time.perf_counter() - t_all
         return self
+
+    def refit(self, est: Sequence[Segment]) -> LinearReference:
+        """A copy refined on ``est`` from this reference's model (warm start): its order,
+        weights and initial-state rule kept, one refinement (the linear counterpart of a fold
+        fit, :func:`dvt_identify.stages.fold_fits`; :mod:`dvt_identify.spread`). Its
+        ``orders_``, ``sel_fit_percent_`` and ``sel_rmse_`` are empty: nothing is chosen.
+
+        Raises:
+            DataError: bad segments (as :meth:`fit`), or names differing from the fitted ones.
+            FitError: not fitted, or the refinement failed (naming the segments).
+        """
+        m = self._fitted()
+        est = list(est)
+        _check_segments(est, est)
+        for s in est:
+            _check_names(s, self.input_names_, self.output_names_)
+        t0 = time.perf_counter()
+        out = copy.copy(self)
+        out._rng = np.random.default_rng(self.seed)
+        try:
+            _, model, x0s, _, _ = out._refine(m, est, "warm from the fitted reference")
+        except _FAILURES as exc:
+            raise FitError(f"LinearReference.refit on {[s.name for s in est]}: {exc}") from exc
+        out.model_ = model
+        out.A_, out.B_, out.C_, out.D_ = model.A, model.B, model.C, model.D
+        out.x0_ = x0s
+        out.orders_ = []
+        out.sel_fit_percent_, out.sel_rmse_ = (), ()  # nothing was chosen on a selection
+        out.notes_ = [f"refined on {', '.join(s.name for s in est)} from the order-"
+                      f"{self.order_} reference"]
+        out.n_estimated_ = self._n_params(self.order_) + (
+            0 if self.init_window > 0 else len(est) * self.order_)
+        out.seconds_ = time.perf_counter() - t0
+        return out
 
     def _scores(self, model: StateSpace, est: Sequence[Segment], x0s: Sequence[Array],
                 sel: Sequence[Segment]) -> _Scores:

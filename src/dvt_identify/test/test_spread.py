@@ -18,8 +18,9 @@ import pytest
 
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import parse_description
-from dvt_identify.errors import DataError
+from dvt_identify.errors import DataError, FitError
 from dvt_identify.fit import OEFit
+from dvt_identify.reference import LinearReference
 from dvt_identify.series import evaluate_test
 from dvt_identify.simulation import OEModel
 from dvt_identify.spread import figure_spread
@@ -89,3 +90,68 @@ def test_bad_arguments_are_refused() -> None:
         figure_spread(fit, [])
     with pytest.raises(DataError, match="too few"):
         figure_spread(fit, [record("test", 2, (4.0, 4.0))], parts=5)
+
+
+def _reference(est: Segment) -> LinearReference:
+    return LinearReference(max_order=2, seed=0).fit([est], [record("val", 3, (4.0, 4.0))])
+
+
+@pytest.mark.parametrize("drift", [False, True])
+def test_the_linear_reference_spreads_alike(drift: bool) -> None:
+    """The reference's own figure is its test figure; refined on each half (warm, its order
+    kept), it is narrow on the stationary cart (within 10 %) and misses by more than twice its
+    whole figure on the drifting one."""
+    est = record("est", 1, (3.0, 5.0) if drift else (4.0, 4.0))
+    fit, ref = _final(est), _reference(est)
+    test = [record("test", 2, (4.0, 4.0))]
+    sp = figure_spread(fit, test, reference=ref)
+    assert sp.reference is not None
+    own = evaluate_test(fit, fit, test, reference=ref).reference
+    assert own is not None
+    assert sp.reference.rmse[0] == pytest.approx(own.rmse[0], rel=1e-12)
+    assert [name for name, _ in sp.reference_parts] == ["first half", "second half"]
+    halves = [f.rmse[0] for _, f in sp.reference_parts if not isinstance(f, str)]
+    assert len(halves) == 2
+    if drift:
+        assert min(halves) > 2.0 * sp.reference.rmse[0], (halves, sp.reference.rmse)
+    else:
+        assert halves == pytest.approx([sp.reference.rmse[0]] * 2, rel=0.1)
+    assert "linear reference" in sp.statement
+    d = sp.as_dict()
+    assert d["reference_rmse_range"]["v"] == [  # type: ignore[index]
+        min(sp.reference.rmse[0], *halves), max(sp.reference.rmse[0], *halves)]
+
+
+def test_a_reference_part_that_fails_is_named_not_raised(monkeypatch: pytest.MonkeyPatch
+                                                         ) -> None:
+    """A refinement that fails leaves that part unscored, with the reason in the statement
+    and the JSON; the physical model's spread stands."""
+    est = record("est", 1, (4.0, 4.0))
+    fit, ref = _final(est), _reference(est)
+
+    def fails(self: LinearReference, est: object) -> LinearReference:
+        raise FitError("LinearReference.refit on ['est@block1']: order 1: the start cannot "
+                       "be simulated")
+    monkeypatch.setattr(LinearReference, "refit", fails)
+    sp = figure_spread(fit, [record("test", 2, (4.0, 4.0))], reference=ref)
+    assert len(sp.parts) == 2
+    assert all(isinstance(f, str) for _, f in sp.reference_parts)
+    assert "Not scored: linear reference on the first half: LinearReference.refit" in sp.statement
+    d = sp.as_dict()
+    assert d["reference_parts"][0]["not_scored"].startswith("LinearReference.refit")  # type: ignore[index]
+
+
+def test_a_warm_refit_keeps_the_order_and_the_optimum() -> None:
+    """Refined on its own estimation data the reference stays where it was (warm start at
+    its optimum); on a half it keeps its order and counts its parameters again."""
+    est = record("est", 1, (4.0, 4.0))
+    ref = _reference(est)
+    same = ref.refit([est])
+    assert same.order_ == ref.order_ and same.orders_ == []
+    np.testing.assert_allclose(same.model_.poles_s(), ref.model_.poles_s(), rtol=1e-3)
+    half = ref.refit([est.rows(0, est.n // 2)])
+    assert half.order_ == ref.order_
+    assert half.n_estimated_ == ref.n_estimated_
+    with pytest.raises(DataError, match="output_names"):
+        ref.refit([make_segment("x", np.arange(10) * 0.01, np.zeros(10), np.zeros(10),
+                                ("force",), ("w",))])
