@@ -181,10 +181,16 @@ def _row_emps(f: dict[str, Any]) -> tuple[str, str]:
     lin: dict[str, Any] = next((r for k, r in rows.items() if "linear reference" in k), {})
     parts = _get(f, "benchmark", "part_fits") or {}
     whole: dict[str, Any] = next((r for r in parts.get("rows", []) if r.get("part") == "whole record"), {})
+    lin_whole = ""
+    if "linear_test_rms_mm" in whole:
+        lw = whole["linear_test_rms_mm"]
+        wins = lw <= whole.get("test_rms_mm", 0.0)
+        lin_whole = (f" (our linear reference fitted on all of it {_n(lw)} mm"
+                     + (": the simple model wins there)" if wins else ")"))
     spread = ("" if not parts else
               f"; the same structure fitted on other parts of the estimation record "
               f"{_n(parts.get('test_min_mm'))}-{_n(parts.get('test_max_mm'))} mm, on all of it "
-              f"{_n(whole.get('test_rms_mm'))} mm")
+              f"{_n(whole.get('test_rms_mm'))} mm{lin_whole}")
     ts = f.get("test_spread") or {}
 
     def halves(key: str) -> str:

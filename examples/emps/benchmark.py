@@ -30,7 +30,8 @@ This script reads that run's ``report.json`` and, from the records themselves:
   describe from what the records' difference costs;
 - fits the chosen structure by the same criterion on the whole estimation record, its halves
   and its quarters, and scores each fit on the test record: how far the figure moves with the
-  part of the estimation record the friction levels come from (no choice uses the test).
+  part of the estimation record the friction levels come from (no choice uses the test); the
+  tool's linear reference, fitted on each part alone, beside it.
 
     .venv/bin/python examples/emps/benchmark.py --report OUT/report.json [--data DIR] [--out DIR]
 
@@ -53,6 +54,8 @@ from numpy.typing import NDArray
 from dvt_identify.benchmarks import fit_for_output, protocol_score_model
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import load_description
+from dvt_identify.errors import DvtIdentifyError
+from dvt_identify.reference import LinearReference
 from dvt_identify.simulation import OEModel
 
 Array = NDArray[np.float64]
@@ -165,7 +168,8 @@ def run(data: Path, report: dict[str, Any]) -> dict[str, Any]:
     mi, ti = idim_model()
     score("published IDIM-LS (Janot et al.), simulated here, no refit", mi, ti)
     bound = test_record_bound(m, th, test, est)
-    spread = part_fits(m, th, est, test)
+    order = (report.get("linear_reference") or {}).get("order")
+    spread = part_fits(m, th, est, test, int(order) if order else None)
     for label, v in PUBLISHED:
         rows.append({"label": label, "test_rms_mm": v, "est_rms_mm": None})
     return {"protocol": {"input": "vir (force gtau * vir, N)", "output": "qm (m)",
@@ -206,14 +210,32 @@ PARTS: tuple[tuple[str, float, float], ...] = (
 :func:`part_fits` fits the chosen structure on."""
 
 
-def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment) -> dict[str, Any]:
+def linear_part(seg: Segment, test: Segment, order: int) -> dict[str, Any]:
+    """The black-box linear reference of the tool's order fitted on ``seg`` alone
+    (:class:`dvt_identify.reference.LinearReference`, output error, the same 20-sample
+    initial-state window; orders up to ``order``, chosen on ``seg`` itself: no other data) and
+    scored on the test record like the tool's reference [mm]; or why it has no figure."""
+    try:
+        ref = LinearReference(max_order=order, init_window=N_INIT, seed=0).fit([seg], [seg])
+        pred = ref.predict(test, N_INIT)
+    except DvtIdentifyError as exc:
+        return {"linear_not_scored": str(exc)}
+    err = pred[N_INIT:, 0] - test.y[N_INIT:, 0]
+    return {"linear_order": ref.order_,
+            "linear_test_rms_mm": 1e3 * float(np.sqrt(np.mean(err ** 2)))}
+
+
+def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment,
+              linear_order: int | None = None) -> dict[str, Any]:
     """How far the test figure moves with the part of the estimation record the parameters come
     from: the tool's chosen structure fitted by the benchmark's own criterion
     (:func:`dvt_identify.benchmarks.fit_for_output`, started from the tool's parameters) on the
     whole estimation record, its halves and its quarters (:data:`PARTS`), each scored on the
-    part itself (in sample), on the whole estimation record and on the test record [mm]. No
-    choice uses the test record; the tool's own model is fitted on the first 70 % (the last
-    30 % chooses the effects). Returns the rows and the test figures' range."""
+    part itself (in sample), on the whole estimation record and on the test record [mm]; with
+    ``linear_order`` (the tool's reference's), the linear reference fitted on the same part
+    beside it (:func:`linear_part`). No choice uses the test record; the tool's own model is
+    fitted on the first 70 % (the last 30 % chooses the effects). Returns the rows and the test
+    figures' range."""
     lo = np.array([s.lower for s in model.specs])
     hi = np.array([s.upper for s in model.specs])
     n = est.t.size
@@ -227,9 +249,19 @@ def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment) -> dict
         on_test = protocol_score_model(model, fit.theta, test, 0, N_INIT, model.nx)
         rows.append({"part": name, "samples": [a, b], "in_sample_rms_mm": 1e3 * fit.rms,
                      "est_rms_mm": 1e3 * on_est.rms, "test_rms_mm": 1e3 * on_test.rms,
-                     "parameters": dict(zip(model.names, map(float, fit.theta), strict=True))})
+                     "parameters": dict(zip(model.names, map(float, fit.theta), strict=True)),
+                     **(linear_part(seg, test, linear_order) if linear_order else {})})
     t = [r["test_rms_mm"] for r in rows]
-    return {"rows": rows, "test_min_mm": min(t), "test_max_mm": max(t)}
+    out: dict[str, Any] = {"rows": rows, "test_min_mm": min(t), "test_max_mm": max(t)}
+    lin = [r for r in rows if "linear_test_rms_mm" in r]
+    if lin:
+        out["linear_test_min_mm"] = min(r["linear_test_rms_mm"] for r in lin)
+        out["linear_test_max_mm"] = max(r["linear_test_rms_mm"] for r in lin)
+        out["physical_better_on"] = [r["part"] for r in lin
+                                     if r["test_rms_mm"] < r["linear_test_rms_mm"]]
+        out["linear_better_on"] = [r["part"] for r in lin
+                                   if r["linear_test_rms_mm"] <= r["test_rms_mm"]]
+    return out
 
 
 def markdown(res: dict[str, Any]) -> str:
@@ -258,13 +290,21 @@ def markdown(res: dict[str, Any]) -> str:
     if sp:
         lines += ["", "The chosen structure fitted by the benchmark's criterion on parts of the "
                   "estimation record (no choice on the test record) [mm]:", "",
-                  "| part | in sample | whole estimation record | test |", "|---|---|---|---|"]
+                  "| part | in sample | whole estimation record | test | linear reference "
+                  "fitted on the part, test |", "|---|---|---|---|---|"]
         for r in sp["rows"]:
+            lin = ("-" if "linear_test_rms_mm" not in r
+                   else f"{r['linear_test_rms_mm']:.2f} (order {r['linear_order']})")
             lines.append(f"| {r['part']} | {r['in_sample_rms_mm']:.2f} | "
-                         f"{r['est_rms_mm']:.2f} | {r['test_rms_mm']:.2f} |")
+                         f"{r['est_rms_mm']:.2f} | {r['test_rms_mm']:.2f} | {lin} |")
         lines += ["", f"The test figure ranges over {sp['test_min_mm']:.2f}-"
                   f"{sp['test_max_mm']:.2f} mm with the part the friction levels come from: an "
                   "open-loop position simulation turns a fraction of a newton into millimetres."]
+        if "linear_better_on" in sp:
+            lines += ["", f"Fitted on the same part, the linear reference ranges over "
+                      f"{sp['linear_test_min_mm']:.2f}-{sp['linear_test_max_mm']:.2f} mm. It "
+                      f"scores better on {', '.join(sp['linear_better_on']) or 'none'}; the "
+                      f"physical model on {', '.join(sp['physical_better_on']) or 'none'}."]
     ag = res.get("records_agree")
     if ag:
         lines += ["", ag["statement"]]
