@@ -99,6 +99,10 @@ trust region (:meth:`OEFit._restart_collapsed`)."""
 RESTART_RTOL = 1e-6
 """A restart (:data:`COLLAPSED_STATUSES`) is kept, and followed by another, only when it lowered
 the cost by more than this share of it."""
+UNSEEN_RTOL = 1e-6
+"""Initial-state directions whose sensitivity over a whole segment is below this fraction of
+the largest are unseen by every output (a free rigid-body angle): :meth:`OEFit.window_meat`
+leaves them out."""
 MAX_RESTARTS = 40
 """At most this many restarts of the best start. Measured on a belt drive read sign-blind
 through a filter (``scripts/belt_draws.py --sensor-lag 0.03 --lag-candidate --seeds 10``): the
@@ -436,27 +440,101 @@ class OEFit(StartPoints):
         sensitivities (:data:`~dvt_identify.streamls.Block`)."""
         m = self.model
         free = np.flatnonzero(m.free) if params else np.zeros(0, dtype=int)
-        nf, nx = int(free.size), m.nx
+        nf = int(free.size)
         nx0 = self._nx0
         cols = np.concatenate([np.arange(nf), nf + k * nx0 + np.arange(nx0)]).astype(np.int64)
         J = np.zeros((seg.y.size, nf + nx0))
-        try:
-            with np.errstate(all="ignore"):
-                _, yh, S = simulate_sens(m, theta, seg, x0, free, True)
-        except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError,
-                DivergedError):  # the residual is the penalty there
+        got = self._sens(theta, seg, x0, w, free)
+        if got is None:  # the residual is the penalty there
             return J, np.full(seg.y.size, PENALTY), cols
-        Sk = -(S / w[None, :, None]).reshape(seg.y.size, nf + nx)
+        Sk, yh = got
         if self.init_window > 0:
-            nw = min(seg.n, self.init_window) * m.ny
-            if not np.all(np.isfinite(Sk[:nw])):  # LAPACK would stop on it: the penalty
+            total = self._through_window(Sk, nf, seg.n)
+            if total is None:  # LAPACK would stop on it: the penalty
                 return J, np.full(seg.y.size, PENALTY), cols
-            dx0 = -np.linalg.lstsq(Sk[:nw, nf:], Sk[:nw, :nf], rcond=1e-10)[0]
-            J[:, :nf] = Sk[:, :nf] + Sk[:, nf:] @ dx0
+            J[:, :nf] = total
         else:
             J[:] = Sk
         J = np.nan_to_num(J, nan=0.0, posinf=0.0, neginf=0.0)
         return J, _clean(((seg.y - yh) / w).ravel()), cols
+
+    def _sens(self, theta: Array, seg: Segment, x0: Array, w: Array, free: NDArray[np.int64]
+              ) -> tuple[Array, Array] | None:
+        """``d residual / d (free parameters, x0)`` of ``seg`` (N ny, nf + nx) and the
+        simulated outputs (N, ny), from one simulation with sensitivities; ``None`` where it
+        cannot be simulated."""
+        try:
+            with np.errstate(all="ignore"):
+                _, yh, S = simulate_sens(self.model, theta, seg, x0, free, True)
+        except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError,
+                DivergedError):
+            return None
+        return -(S / w[None, :, None]).reshape(seg.y.size, free.size + self.model.nx), yh
+
+    def _through_window(self, Sk: Array, nf: int, n: int) -> Array | None:
+        """The parameters' columns of ``Sk`` (:meth:`_sens`) with the initial state the
+        window gives them, ``dx0/dtheta = -O^+ dyhat_window/dtheta`` (``O`` the window's
+        initial-state sensitivity, Gauss-Newton), (N ny, nf); ``None`` when the window's rows
+        are not finite."""
+        nw = min(n, self.init_window) * self.model.ny
+        if not np.all(np.isfinite(Sk[:nw])):
+            return None
+        dx0 = -np.linalg.lstsq(Sk[:nw, nf:], Sk[:nw, :nf], rcond=1e-10)[0]
+        return np.asarray(Sk[:, :nf] + Sk[:, nf:] @ dx0)
+
+    def window_meat(self, theta: Array, seg: Segment, x0: Array, w: Array
+                    ) -> tuple[NDArray[np.int64], Array]:
+        """With a window: what its noise adds to the covariance of the scores' sum, over the
+        free parameters (their indices among the unknowns, and (nf, nf)); zeros without one.
+
+        The window's samples set the initial state (:meth:`window_x0`): their deviation
+        ``e`` from the model moves it by ``O^+ e`` and every residual of the segment by
+        ``-Phi O^+ e`` (``O`` the window's rows of the initial-state sensitivity ``Phi``).
+        The fitted initial state absorbs that part of the window's own residuals, so no
+        residual shows it and the sandwich's scores miss it; it adds ``K V K^T`` with
+        ``K = J^T Phi O^+`` and ``V`` the window's deviations' covariance, each output's
+        residual autocovariance over the window's lags
+        (:func:`~dvt_identify.uncertainty.sandwich_covariance` ``extra``): a smooth
+        deviation moves the initial state along the directions the window sees well, white
+        noise along all of them.
+        Without it a short window, whose noise the whole record shares, was left out of every
+        std (``scripts/belt_draws.py --init-window 10``: errors up to 5 std)."""
+        m = self.model
+        free = np.flatnonzero(m.free)
+        nf = int(free.size)
+        cols = np.arange(nf, dtype=np.int64)
+        out = np.zeros((nf, nf))
+        got = self._sens(theta, seg, x0, w, free) if self.init_window > 0 and nf else None
+        if got is None:
+            return cols, out
+        Sk, yh = got
+        total = self._through_window(Sk, nf, seg.n)
+        if total is None:
+            return cols, out
+        J = np.nan_to_num(total, nan=0.0, posinf=0.0, neginf=0.0)
+        phi = np.nan_to_num(Sk[:, nf:], nan=0.0, posinf=0.0, neginf=0.0)
+        nt = min(seg.n, self.init_window)
+        nw = nt * m.ny
+        r = _clean(((seg.y - yh) / w).ravel()).reshape(seg.n, m.ny)
+        # the deviations' covariance over the window: each output's sample autocovariance at
+        # lags 0..nt-1 (Toeplitz, positive semi-definite), the outputs uncorrelated; rows
+        # time-major as the residual's
+        V = np.zeros((nw, nw))
+        lag = np.abs(np.subtract.outer(np.arange(nt), np.arange(nt)))
+        for j in range(m.ny):
+            rj = r[:, j]
+            gam = np.array([float(rj[: seg.n - k] @ rj[k:]) / seg.n for k in range(nt)])
+            V[j::m.ny, j::m.ny] = gam[lag]
+        # initial-state directions no output of the record sees (a free rigid-body angle:
+        # its sensitivity is rounding noise) move no residual: projected out before the
+        # window's inverse, which would otherwise divide rounding noise by rounding noise
+        _, sv, vt = np.linalg.svd(phi, full_matrices=False)
+        seen = vt[sv > UNSEEN_RTOL * float(sv.max(initial=0.0))].T  # (nx, r)
+        if not seen.size:
+            return cols, out
+        phi = phi @ seen
+        K = (J.T @ phi) @ np.linalg.pinv(phi[:nw], rcond=1e-10)  # (nf, nw)
+        return cols, np.asarray(K @ V @ K.T)
 
     def fit(self, segments: Sequence[Segment]) -> OEFit:
         """Fit to ``segments``; returns self.
@@ -748,18 +826,26 @@ class OEFit(StartPoints):
         self.x0_ = [np.asarray(x, float) for x in x0s]
         self.cost_ = float(best.cost)
         # HAC sandwich (lag window): holds for coloured residuals (dvt_identify.uncertainty)
+        # with a window its noise moves every residual through the initial state, which the
+        # residuals cannot show (OEFit.window_meat)
+        q = int(free.sum()) + nseg * self._nx0
+        extra = None
+        if self.init_window > 0:
+            extra = np.zeros((q, q))
+            for sg, x0 in zip(segments, x0s, strict=True):
+                c, e = self.window_meat(theta, sg, x0, self.weights_)
+                extra[np.ix_(c, c)] += e
         if getattr(best, "factored", False):  # built segment by segment, never held whole
             self.jac_ = None
             self.residual_, cov = sandwich_by_segment(
                 lambda k: self._rows(theta, segments[k], x0s[k], self.weights_, k),
-                [sg.n for sg in segments], segments[0].y.shape[1],
-                int(free.sum()) + nseg * self._nx0)
+                [sg.n for sg in segments], segments[0].y.shape[1], q, extra=extra)
             std_free = cov.std
         else:
             self.residual_ = np.asarray(best.fun, float)
             self.jac_ = np.asarray(best.jac, float)
             std_free = sandwich_covariance(self.jac_, self.residual_, segments[0].y.shape[1],
-                                           [sg.n for sg in segments]).std
+                                           [sg.n for sg in segments], extra=extra).std
         std = np.zeros(len(m.specs))
         std[free] = std_free[: int(free.sum())]
         self.std_ = std

@@ -261,7 +261,8 @@ class Covariance:
 
 def sandwich_covariance(jac: ArrayLike, residual: ArrayLike, ny: int,
                         seg_sizes: Sequence[int], bandwidth: int | None = None,
-                        n_params: int | None = None) -> Covariance:
+                        n_params: int | None = None, extra: ArrayLike | None = None
+                        ) -> Covariance:
     """HAC sandwich covariance of least-squares parameters (see module docstring).
 
     Args:
@@ -271,15 +272,29 @@ def sandwich_covariance(jac: ArrayLike, residual: ArrayLike, ny: int,
         seg_sizes: samples per segment, in the order of the residual.
         bandwidth: Bartlett window [samples]; ``None``: :func:`covariance_bandwidth`.
         n_params: parameter count for the small-sample factor ``m / (m - p)``.
+        extra: a covariance of the scores' sum the residuals cannot show, shape (p, p), added
+            to their long-run covariance: the noise a state-initialisation window passes to
+            every residual through the initial state, which the fitted initial state absorbs
+            from the window's own residuals (:meth:`dvt_identify.fit.OEFit.window_meat`);
+            ``None``: none.
 
     Returns:
         :class:`Covariance` in the parameters' units.
+
+    Raises:
+        UncertaintyError: inconsistent shapes (``extra`` not (p, p)).
     """
     J, r = _check(jac, residual, ny, seg_sizes)
-    m = J.shape[0]
+    m, p = J.shape
     g = scores(J, r, ny, seg_sizes)
     L = covariance_bandwidth(g) if bandwidth is None else max(1, int(bandwidth))
-    return covariance_from(J.T @ J, long_run_covariance(g, L), L, m, float(r @ r), n_params)
+    S = long_run_covariance(g, L)
+    if extra is not None:
+        E = np.asarray(extra, dtype=float)
+        if E.shape != (p, p):
+            raise UncertaintyError(f"extra: expected shape ({p}, {p}), got {E.shape}")
+        S = S + E
+    return covariance_from(J.T @ J, S, L, m, float(r @ r), n_params)
 
 
 def covariance_from(H: Array, S: Array, bandwidth: int, m: int, rr: float,
@@ -305,13 +320,14 @@ def covariance_from(H: Array, S: Array, bandwidth: int, m: int, rr: float,
 
 def sandwich_by_segment(rows: Callable[[int], tuple[Array, Array, NDArray[np.int64]]],
                         seg_sizes: Sequence[int], ny: int, q: int,
-                        n_params: int | None = None) -> tuple[Array, Covariance]:
+                        n_params: int | None = None, extra: Array | None = None
+                        ) -> tuple[Array, Covariance]:
     """:func:`sandwich_covariance` of a problem too large to hold its Jacobian: ``rows(k)``
     gives segment ``k``'s rows of the Jacobian over the unknowns ``cols`` (zero in the
     others; ``(N_k ny, c_k)``), the residual ``(N_k ny,)`` and ``cols`` (c_k indices into the
     ``q`` unknowns); it is called twice per segment (``H`` and the scores' AR(1) terms for the
-    bandwidth, then the scores' long-run covariance). Returns the whole residual and the
-    covariance (q, q)."""
+    bandwidth, then the scores' long-run covariance). ``extra`` (q, q): as in
+    :func:`sandwich_covariance`. Returns the whole residual and the covariance (q, q)."""
     H = np.zeros((q, q))
     terms = []
     lagged = []
@@ -331,6 +347,10 @@ def sandwich_by_segment(rows: Callable[[int], tuple[Array, Array, NDArray[np.int
     for k, n in enumerate(seg_sizes):
         J, r, cols = rows(k)
         S[np.ix_(cols, cols)] += long_run_term(scores(J, r, ny, [n])[0], L)
+    if extra is not None:
+        if extra.shape != (q, q):
+            raise UncertaintyError(f"extra: expected shape ({q}, {q}), got {extra.shape}")
+        S += extra
     resid = np.concatenate(parts)
     return resid, covariance_from(H, S, L, resid.size, float(resid @ resid), n_params)
 
