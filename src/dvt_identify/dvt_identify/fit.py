@@ -480,7 +480,8 @@ class OEFit(StartPoints):
         if not np.all(np.isfinite(Sk[:nw])):
             return None
         dx0 = -np.linalg.lstsq(Sk[:nw, nf:], Sk[:nw, :nf], rcond=1e-10)[0]
-        return np.asarray(Sk[:, :nf] + Sk[:, nf:] @ dx0)
+        with np.errstate(all="ignore"):  # a solver's trial point far out: the callers clean it
+            return np.asarray(Sk[:, :nf] + Sk[:, nf:] @ dx0)
 
     def window_meat(self, theta: Array, seg: Segment, x0: Array, w: Array
                     ) -> tuple[NDArray[np.int64], Array]:

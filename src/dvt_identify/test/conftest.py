@@ -25,8 +25,10 @@ from dvt_identify.simulation import OEModel
 CART_SEEDS = {"est": 1, "val": 2, "test": 3, "est0": 11, "est1": 12}
 
 
-def _cart_spec(scale: float | None = None) -> dict[str, Any]:
-    """The cart's description as a fresh dict; ``scale`` sets the speed's ``scale``."""
+def _cart_spec(scale: float | None = None,
+               candidates: Sequence[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The cart's description as a fresh dict; ``scale`` sets the speed's ``scale``,
+    ``candidates`` its candidates (default: ``sensor_offset`` on the speed)."""
     v: dict[str, Any] = {"name": "v", "topic": "/cart/joint_states", "field": "velocity",
                          "joint": "cart"}
     if scale is not None:
@@ -40,14 +42,16 @@ def _cart_spec(scale: float | None = None) -> dict[str, Any]:
                       "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
                       "parameters": {"M": {"initial": 2.0, "lower": 0.01},
                                      "Fv": {"initial": 3.0, "lower": 0.0}}},
-        "candidates": [{"effect": "sensor_offset", "where": "v"}],
+        "candidates": ([{"effect": "sensor_offset", "where": "v"}] if candidates is None
+                       else [dict(c) for c in candidates]),
         "preprocess": {"fit_decimate": 1},
         "fit": {"starts": 1, "refit_starts": 1},
     }
 
 
-def _cart_desc(scale: float | None = None) -> Description:
-    return parse_description(_cart_spec(scale), "cart.yaml")
+def _cart_desc(scale: float | None = None,
+               candidates: Sequence[dict[str, Any]] | None = None) -> Description:
+    return parse_description(_cart_spec(scale, candidates), "cart.yaml")
 
 
 def _cart_record(desc: Description, name: str, seed: int, n: int = 1500, offset: float = 0.0
@@ -65,13 +69,13 @@ def _cart_record(desc: Description, name: str, seed: int, n: int = 1500, offset:
 
 @pytest.fixture(scope="session")
 def cart_spec() -> Callable[..., dict[str, Any]]:
-    """``cart_spec(scale=None)``: the cart's description as a fresh dict."""
+    """``cart_spec(scale=None, candidates=None)``: the cart's description as a fresh dict."""
     return _cart_spec
 
 
 @pytest.fixture(scope="session")
 def cart_desc() -> Callable[..., Description]:
-    """``cart_desc(scale=None)``: the cart's description, parsed."""
+    """``cart_desc(scale=None, candidates=None)``: the cart's description, parsed."""
     return _cart_desc
 
 

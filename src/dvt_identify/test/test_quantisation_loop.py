@@ -12,32 +12,23 @@ clean variant meets with standard deviations of about 0.02 %.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 from dvt_identify.data import Segment, make_segment
-from dvt_identify.description import Description, parse_description
+from dvt_identify.description import Description
 from dvt_identify.loop import IdentificationResult, LoopConfig, identify
 from dvt_identify.simulation import OEModel
 
 STEP = 0.05
 """Grid step of the sensor [m/s]."""
 TRUE = {"M": 2.5, "Fv": 4.0}
-RAW = {
-    "name": "cart",
-    "inputs": [{"name": "force", "topic": "/c/drive", "field": "effort", "joint": "c"}],
-    "outputs": [{"name": "v", "topic": "/c/joint_states", "field": "velocity", "joint": "c"}],
-    "structure": {"type": "mechanical", "mass": [["M"]], "damping": [["Fv"]],
-                  "input_matrix": [[1.0]], "force_unit": "N", "speed_unit": "m/s",
-                  "parameters": {"M": {"initial": 2.0, "lower": 0.01},
-                                 "Fv": {"initial": 3.0, "lower": 0.0}}},
-    "candidates": [{"effect": "sensor_quantisation", "where": "v"},
-                   {"effect": "sensor_saturation", "where": "v", "max_level": 1000.0},
-                   {"effect": "sensor_offset", "where": "v"},
-                   {"effect": "sign_blind", "where": "v"}],
-    "preprocess": {"fit_decimate": 1},
-}
+CANDIDATES = [{"effect": "sensor_quantisation", "where": "v"},
+              {"effect": "sensor_saturation", "where": "v", "max_level": 1000.0},
+              {"effect": "sensor_offset", "where": "v"},
+              {"effect": "sign_blind", "where": "v"}]
 CFG = LoopConfig(starts=1, refit_starts=1, drift_windows=0)
 
 
@@ -54,13 +45,15 @@ def record(desc: Description, name: str, seed: int, step: float, n: int = 1500) 
     return make_segment(name, t, u, y, desc.input_names, desc.output_names)
 
 
-def run(step: float) -> IdentificationResult:
-    desc = parse_description(RAW, "cart.yaml")
+def run(cart_desc: Callable[..., Description], step: float) -> IdentificationResult:
+    """The loop on the cart (the shared toy, conftest) with :data:`CANDIDATES`."""
+    desc = cart_desc(candidates=CANDIDATES)
     return identify([record(desc, "est", 1, step)], [record(desc, "val", 2, step)], desc, CFG)
 
 
-def test_quantising_sensor_is_found_with_its_step_and_nothing_else() -> None:
-    res = run(STEP)
+def test_quantising_sensor_is_found_with_its_step_and_nothing_else(
+        cart_desc: Callable[..., Description]) -> None:
+    res = run(cart_desc, STEP)
     assert [d.score.label for d in res.accepted] == ["sensor_quantisation@v"]
     dec = res.accepted[0]
     assert dec.validation is not None and dec.validation.p_value < 1e-6
@@ -79,8 +72,8 @@ def test_quantising_sensor_is_found_with_its_step_and_nothing_else() -> None:
         "sensor_offset@v", "sensor_saturation@v", "sign_blind@v"}
 
 
-def test_clean_sensor_accepts_nothing() -> None:
-    res = run(0.0)
+def test_clean_sensor_accepts_nothing(cart_desc: Callable[..., Description]) -> None:
+    res = run(cart_desc, 0.0)
     assert res.accepted == []
     par, std = res.final.parameters(), res.final.fit.parameter_std()
     for name, value in TRUE.items():
