@@ -498,8 +498,9 @@ class OEFit(StartPoints):
         (:func:`~dvt_identify.uncertainty.sandwich_covariance` ``extra``): a smooth
         deviation moves the initial state along the directions the window sees well, white
         noise along all of them.
-        Without it a short window, whose noise the whole record shares, was left out of every
-        std (``scripts/belt_draws.py --init-window 10``: errors up to 5 std)."""
+        Without it the noise of a short window, which the whole record shares, was left out
+        of every std (``test_window_uncertainty``: 95 % intervals held the truth in 113 and 100
+        of 200 runs without it, 197 and 198 with it)."""
         m = self.model
         free = np.flatnonzero(m.free)
         nf = int(free.size)

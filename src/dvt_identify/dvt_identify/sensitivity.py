@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from dvt_identify.data import Segment
 from dvt_identify.effects import Effect, SegmentView
+from dvt_identify.effects.base import overrides
 from dvt_identify.simloop import loop_members_sens
 from dvt_identify.simulation import (
     OEModel,
@@ -71,11 +72,6 @@ def _param_step(model: OEModel, e: Effect, loc: int, j: int, value: float) -> fl
     if wide is None:
         return _step(value, upper)
     return -wide if value + wide > upper else wide
-
-
-def _overrides(e: Effect, name: str) -> bool:
-    """Whether ``e``'s class has its own ``name`` method (not the base class's no-op)."""
-    return getattr(type(e), name) is not getattr(Effect, name)
 
 
 def linear_tangents(model: OEModel, theta: Array, dt: float, js: Sequence[int], A: Array
@@ -180,11 +176,11 @@ def _forward(model: OEModel, theta: Array, seg: Segment, x0: Array, params: list
         h = _param_step(model, e, loc, j, float(theta[j]))
         p2 = pr.ps[i].copy()
         p2[loc] += h
-        if _overrides(e, "output_transform"):
+        if overrides(e, "output_transform"):
             own_out.setdefault(i, []).append((q, loc, h))
         ps2 = list(pr.ps)
         ps2[i] = p2
-        if _overrides(e, "input_transform"):  # every effect sees the new inputs
+        if overrides(e, "input_transform"):  # every effect sees the new inputs
             u2 = model.transformed_inputs(ps2, seg)
             view2 = SegmentView(seg.dt, u2, seg.y, seg.angles)
             moved: Sequence[int] = range(len(model.effects))
@@ -195,7 +191,7 @@ def _forward(model: OEModel, theta: Array, seg: Segment, x0: Array, params: list
             twq = None
         for k in moved:
             ek = model.effects[k]
-            if ek.member is None or not _overrides(ek, "exogenous_force"):
+            if ek.member is None or not overrides(ek, "exogenous_force"):
                 continue
             f2 = ek.exogenous_force(ps2[k], view2)
             f1 = before.get(k)
@@ -245,7 +241,7 @@ def _output_tangents(model: OEModel, pr: Prepared, x: Array, tx: Array,
         ty = np.einsum("rj,njp->nrp", model.C, tx)
     y, ty = lag_outputs(y, pr.out_lag, pr.dt), lag_outputs(ty, pr.out_lag, pr.dt)
     for i, (e, p) in enumerate(zip(model.effects, pr.ps, strict=True)):
-        if not _overrides(e, "output_transform"):
+        if not overrides(e, "output_transform"):
             continue
         yt = e.output_transform(p, y, pr.dt)
         y_next = y if yt is None else yt
@@ -284,7 +280,7 @@ def _finite_differences(model: OEModel, theta: Array, seg: Segment, x0: Array,
             i, loc = model.effect_of(j)
             e = model.effects[i]
             h = _param_step(model, e, loc, j, float(theta[j]))
-            if _overrides(e, "output_transform"):
+            if overrides(e, "output_transform"):
                 own.setdefault(i, []).append((q, loc, h))
         th = theta.copy()
         th[j] += h

@@ -144,16 +144,15 @@ def figure_spread(final: OEFit, test: Sequence[Segment], init_window: int = 0,
                        ) from exc
     out = FigureSpread(output_names=names, final=score(final))
     out.parts = [(label, score(f)) for label, f in zip(_names(parts), refits, strict=True)]
-    if reference is not None:
-        def score_ref(ref: LinearReference) -> Figures:
-            preds = [ref.predict(s, w) for s in test]
-            return figures(ys, [p[w:] for p in preds], ref.n_estimated_, names)
+    def score_ref(ref: LinearReference) -> Figures:
+        preds = [ref.predict(s, w) for s in test]
+        return figures(ys, [p[w:] for p in preds], ref.n_estimated_, names)
 
-        try:
-            out.reference = score_ref(reference)
-        except DvtIdentifyError:  # no test figure of its own (the report says why): no spread
-            reference = None
-    if reference is not None:
+    try:
+        out.reference = None if reference is None else score_ref(reference)
+    except DvtIdentifyError:  # no test figure of its own (the report says why): no spread
+        out.reference = None
+    if reference is not None and out.reference is not None:
         for label, out_of_part in zip(_names(parts), others, strict=True):
             try:
                 part = reference_data([b for i, b in enumerate(blocks)

@@ -265,6 +265,13 @@ _REGISTERED: list[type[Effect]] = []
 """Every effect class in the order defined (:meth:`Effect.__init_subclass__`)."""
 
 
+def overrides(effect: Effect | type[Effect], name: str) -> bool:
+    """Whether the class of ``effect`` (an effect or an effect class) has its own ``name``
+    method, not :class:`Effect`'s no-op."""
+    cls = effect if isinstance(effect, type) else type(effect)
+    return getattr(cls, name) is not getattr(Effect, name)
+
+
 def registered() -> tuple[type[Effect], ...]:
     """Every effect class defined so far, by :attr:`Effect.order` (ties in definition order).
 
@@ -351,8 +358,8 @@ class Effect:
         parameters leave the simulated states as they are."""
         moving = ("input_transform", "exogenous_force", "smooth_law", "dry_capacity",
                   "breakaway")
-        own = cls.output_transform is not Effect.output_transform
-        return own and all(getattr(cls, n) is getattr(Effect, n) for n in moving)
+        return overrides(cls, "output_transform") and not any(overrides(cls, n)
+                                                               for n in moving)
 
     # -- construction ----------------------------------------------------------------------
     @classmethod
