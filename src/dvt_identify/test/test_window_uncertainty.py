@@ -11,6 +11,8 @@ a 3-sample window, noise 0.05 m/s), 200 records:
   the count; measured 197 and 198 of 200);
 - without it (the term set to zero) fewer than 75 % do (measured 113 and 100 of 200): the
   std left out the window's noise, which this test would catch.
+
+``pytest -s`` prints the counts.
 """
 
 from __future__ import annotations
@@ -48,7 +50,9 @@ def _hits(desc: Description) -> np.ndarray:
 
 
 def test_the_window_s_noise_is_in_the_std(cart_desc: Callable[..., Description]) -> None:
-    for k in _hits(cart_desc()):
+    hits = _hits(cart_desc())
+    print(f"with the window's term: M {hits[0]:.0f}, Fv {hits[1]:.0f} of {RUNS} inside")
+    for k in hits:
         ci = binomtest(int(k), RUNS).proportion_ci(0.95, method="exact")
         assert ci.high >= 0.95 and ci.low <= 0.995, (k, RUNS, ci)
 
@@ -59,7 +63,9 @@ def test_without_the_window_s_term_the_std_is_too_small(
         nf = int(self.model.free.sum())
         return np.arange(nf), np.zeros((nf, nf))
     monkeypatch.setattr(OEFit, "window_meat", none)
-    assert np.all(_hits(cart_desc()) < 0.75 * RUNS)
+    hits = _hits(cart_desc())
+    print(f"without it: M {hits[0]:.0f}, Fv {hits[1]:.0f} of {RUNS} inside")
+    assert np.all(hits < 0.75 * RUNS)
 
 
 def test_the_term_is_zero_without_a_window_and_positive_with_one(cart_desc: Callable[..., Description]) -> None:
