@@ -54,6 +54,7 @@ from std_srvs.srv import Trigger
 from dvt_identify import supervisor as sv
 from dvt_identify.errors import DvtIdentifyError, SupervisorError
 from dvt_identify.pipeline import model_push, run
+from dvt_identify.push import RESEND_S, answer_of
 from dvt_identify.refit import RefitSettings, plain_value
 from dvt_identify.refit_process import DEFAULT_NICE, RefitWorker
 from dvt_model import rosutil
@@ -123,7 +124,9 @@ def push_parameters(client: AsyncParameterClient, values: Mapping[str, Any],
         client: a parameter client of the model node.
         values: the parameters to set together.
         timeout: seconds to wait for the answer (a busy model node answers after the samples
-            queued before the call) [s].
+            queued before the call) [s]; unanswered, the set is sent again every
+            ``min(RESEND_S, timeout / 3)`` s (:func:`dvt_identify.push.answer_of`: a lost
+            reply; the node takes a repeated set as no change).
         service_timeout: seconds to wait for the node's parameter services [s].
 
     Returns:
@@ -139,18 +142,16 @@ def push_parameters(client: AsyncParameterClient, values: Mapping[str, Any],
         raise DvtIdentifyError(f"model node {node_name!r} has no parameter services (not "
                                "running?)")
     params = [model_parameter(k, v) for k, v in values.items()]
-    future = client.set_parameters_atomically(params)
-    deadline = time.monotonic() + timeout
-    while not future.done():
-        if time.monotonic() > deadline:
-            raise DvtIdentifyError(f"model node {node_name!r} did not answer "
-                                   f"set_parameters_atomically within {timeout:g} s (the push "
-                                   "may still be applied, whole)")
-        time.sleep(0.01)
-    response = future.result()
+    try:  # sent again when its answer is lost (answer_of): a repeated set is no change
+        response, _ = answer_of(lambda: client.set_parameters_atomically(params), timeout,
+                                min(RESEND_S, timeout / 3))
+    except TimeoutError as exc:
+        raise DvtIdentifyError(f"model node {node_name!r} did not answer "
+                               f"set_parameters_atomically: {exc} (the push may still be "
+                               "applied, whole)") from None
     if response is None:
-        raise DvtIdentifyError(f"model node {node_name!r}: set_parameters_atomically failed: "
-                               f"{future.exception()!r}")
+        raise DvtIdentifyError(f"model node {node_name!r}: set_parameters_atomically failed "
+                               "(no response)")
     if not response.result.successful:
         raise DvtIdentifyError(f"model node refused {sorted(values)} (nothing applied): "
                                f"{response.result.reason}")

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import threading
+from concurrent.futures import Future
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,7 +13,7 @@ import pytest
 from dvt_identify.description import load_description
 from dvt_identify.effects import BrakeEngagement, BrakeLockup, make_effect
 from dvt_identify.errors import PushError
-from dvt_identify.push import model_node_parameters
+from dvt_identify.push import answer_of, model_node_parameters
 from dvt_identify.simulation import OEModel
 
 
@@ -188,3 +190,26 @@ def test_band_values_are_pushed_only_when_they_predict_held_out_data_better() ->
     (line,) = push.skipped
     assert line.startswith("band_gain, band_time_constant (the fitted band values predict "
                            "the validation data worse than the start values: loss "), line
+
+
+def test_an_unanswered_push_is_sent_again_and_the_first_answer_wins() -> None:
+    """The first request's answer is lost (its future never completes); the resend's answer
+    is returned. A request answered in time is sent once; none answered raises in time."""
+    sent: list[Future] = []
+
+    def lossy() -> Future:
+        sent.append(Future())
+        if len(sent) == 2:  # the resend is answered a little later
+            threading.Timer(0.02, sent[-1].set_result, args=("applied",)).start()
+        return sent[-1]
+
+    assert answer_of(lossy, timeout=5.0, resend_after=0.1, poll=0.001) == ("applied", 2)
+
+    def prompt() -> Future:
+        future: Future = Future()
+        future.set_result("applied")
+        return future
+
+    assert answer_of(prompt, timeout=5.0, resend_after=0.1) == ("applied", 1)
+    with pytest.raises(TimeoutError, match=r"0.3 s to [34] request"):
+        answer_of(Future, timeout=0.3, resend_after=0.1, poll=0.001)

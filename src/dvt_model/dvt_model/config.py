@@ -407,8 +407,9 @@ class ModelTransaction:
     """A set of model-node parameter changes validated together, ready to apply at once.
 
     Attributes:
-        changed: the model parameters the set changes, in request order, then the partner
-            emptied by the A/B rule (:func:`partner_clears`).
+        changed: the model parameters whose value the set changes, in request order, then
+            the partner emptied by the A/B rule (:func:`partner_clears`); a member that
+            repeats its value in use is not listed.
         values: every model parameter's value after the change (``None``: not set).
         predictor: the one predictor built for ``values``.
         description: a one-line description of its model.
@@ -443,7 +444,9 @@ def model_transaction(current: Mapping[str, Any], changes: Mapping[str, Any],
             ``use_sim_time``; such changes pass unchecked.
 
     Returns:
-        The transaction, or ``None`` when the set changes no model parameter.
+        The transaction, or ``None`` when the set changes no model parameter's value (a set
+        that only repeats the values in use, such as a push sent again after its answer was
+        lost, is no model change: no predictor swap, no detector reset).
 
     Raises:
         ContractError, ModelError, ParameterError (all :class:`DvtModelError`): the message
@@ -466,10 +469,26 @@ def model_transaction(current: Mapping[str, Any], changes: Mapping[str, Any],
             shown = name if len(name) <= 100 else short_repr(name)
             raise ContractError(f"{shown}: unknown parameter of the model node (expected one "
                                 f"of {list(MODEL_PARAMETERS)})")
-    if not model:
-        return None
     cleared = partner_clears(current, model)
     values = {**current, **model, **dict.fromkeys(cleared)}
+    changed = tuple(n for n in (*model, *cleared) if not same_value(values[n], current.get(n)))
+    if not changed:  # nothing new (a resent push, a rollback to the model in use)
+        return None
     predictor, description = build_predictor(values)
-    return ModelTransaction(changed=(*model, *cleared), values=values, predictor=predictor,
+    return ModelTransaction(changed=changed, values=values, predictor=predictor,
                             description=description)
+
+
+def same_value(new: Any, old: Any) -> bool:
+    """Whether a model parameter's ``new`` value equals its ``old`` one: both unset or empty,
+    equal strings, or numbers / number lists of one shape with equal elements (exact: a value
+    that differs in its last bit is a change)."""
+    if _is_empty(new) or _is_empty(old):
+        return _is_empty(new) and _is_empty(old)
+    if isinstance(new, str | bytes) or isinstance(old, str | bytes):
+        return bool(type(new) is type(old) and new == old)
+    try:
+        a, b = np.asarray(new, dtype=float), np.asarray(old, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return a.shape == b.shape and bool(np.array_equal(a, b))

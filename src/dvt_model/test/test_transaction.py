@@ -88,6 +88,22 @@ def test_other_declared_parameters_pass_and_change_no_model():
     assert tx is not None and tx.changed == ("M", "D", "effects")
 
 
+def test_a_set_repeating_the_values_in_use_is_no_change():
+    """A push sent again (its answer lost) or a rollback to the model in use changes nothing;
+    one member that differs makes it a change of that member only (exactly: its last bit)."""
+    applied = model_transaction(_current(), NEW)
+    assert applied is not None
+    in_use = applied.values
+    assert model_transaction(in_use, dict(NEW)) is None
+    assert model_transaction(in_use, {"M": np.array(M_NEW), "effects": EFFECTS_NEW}) is None
+    nudged = [*M_NEW[:-1], float(np.nextafter(M_NEW[-1], 1.0))]
+    tx = model_transaction(in_use, {**NEW, "M": nudged})
+    assert tx is not None and tx.changed == ("M",)
+    tx = model_transaction(in_use, {**NEW, "effects": "[]"})
+    assert tx is not None and tx.changed == ("effects",)
+    assert model_transaction(_current(), {"A": []}) is None  # empties what is not set
+
+
 def test_emptying_a_clears_b_in_the_same_transaction():
     linear = {**_current(), "A": A_OK, "B": B_OK}
     assert partner_clears(linear, {"A": []}) == ("B",)
@@ -145,6 +161,15 @@ def test_node_applies_an_atomic_set_once(model_node):
     state = _state(node)
     assert list(state["M"]) == M_NEW and list(state["D"]) == D_NEW
     assert state["effects"] == EFFECTS_NEW
+
+
+def test_node_takes_a_repeated_set_as_no_change(model_node):
+    node = model_node
+    assert node.set_parameters_atomically(_typed(NEW)).successful
+    predictor, resets = node.predictor, node.detector_resets
+    result = node.set_parameters_atomically(_typed(NEW))  # the same push, sent again
+    assert result.successful, result.reason
+    assert node.predictor is predictor and node.detector_resets == resets
 
 
 @pytest.mark.parametrize(("name", "value", "reason"), BAD_MEMBERS)
