@@ -36,7 +36,10 @@ About 2.5 minutes with the defaults on two cores, 4 more with ``--trial``.
 Usage::
 
     .venv/bin/python scripts/detector_residual.py [--seeds 3100 3101 3102 3103] [--seconds 900]
-        [--trial] [--json]
+        [--trial] [--restart-s 300 --node-only] [--json]
+
+``--restart-s S`` starts a new detector every ``S`` s of each recording (the residual is
+stationary, so each is a node start on fresh data): the first minutes after many starts.
 """
 
 from __future__ import annotations
@@ -223,6 +226,13 @@ def main() -> int:
                     help="hours of white residual for --trial (seed 1)")
     ap.add_argument("--colour-s", type=float, nargs="+", default=[20.0, 120.0, 300.0],
                     help="--trial: lengths of the long-window AR whitening's window [s]")
+    ap.add_argument("--restart-s", type=float, default=0.0,
+                    help="start a new detector (node defaults) every this many seconds of "
+                    "each recording, to count the first minutes after many starts (0: one "
+                    "start per recording)")
+    ap.add_argument("--node-only", action="store_true",
+                    help="count the node defaults' false alarms only (no residual figures, no "
+                    "colour_s 0 variants)")
     ap.add_argument("--json", action="store_true",
                     help="print the figures as one JSON document on stdout (the text on stderr)")
     a = ap.parse_args()
@@ -232,7 +242,7 @@ def main() -> int:
         print(*args, file=out)
 
     figures: dict[str, object] = {"seeds": a.seeds, "seconds_each": a.seconds, "outputs": {},
-                                  "false_alarms": []}
+                                  "false_alarms": [], "restart_s": a.restart_s}
     with ProcessPoolExecutor(2) as pool:
         recs = list(pool.map(record, a.seeds, [a.seconds] * len(a.seeds)))
     setup = detector_config({})
@@ -241,7 +251,7 @@ def main() -> int:
     L = cfg.learn_samples
     say(f"{len(recs)} clean plants (seeds {a.seeds}), {a.seconds:g} s each, 10-ms blocks, "
           f"{sum(r.shape[0] for r in recs) / cfg.sample_rate_hz / 3600:.2f} h in all")
-    for j, name in enumerate(cfg.names):
+    for j, name in enumerate([] if a.node_only else cfg.names):
         xs = [r[:, 1 + j] - r[:, 1 + j].mean() for r in recs]
         acf = []
         for lag in (1, 2, 5, 10, 20, 50, 100, 200):
@@ -272,7 +282,7 @@ def main() -> int:
               "B mean(means of B ^ 2) at B = 1/100/400/2000: " + " ".join(f"{v:.2f}" for v in wz))
     design = 3600.0 / cfg.false_alarm_period_s
     say(f"\nfalse alarms of ChangeDetector (node defaults; design {design:.2f}/h):")
-    for learn_s in (cfg.learn_s, 60.0, 120.0, None):
+    for learn_s in (None,) if a.node_only else (cfg.learn_s, 60.0, 120.0, None):
         if learn_s is None:
             setting, label = cfg, f"colour_s {cfg.colour_s:g}"
         else:
@@ -280,9 +290,15 @@ def main() -> int:
             label = f"colour_s 0, learn_s {learn_s:g}"
         # before the colour, with a colour on less than colour_s of history, with the full one
         alarms, tested = [0, 0, 0], [0, 0, 0]
+        starts = 0
+        restart = a.restart_s if learn_s is None else 0.0
         for r in recs:
-            det = ChangeDetector(setting)
+            det, t0 = ChangeDetector(setting), r[0, 0]
+            starts += 1
             for row in r.tolist():
+                if restart > 0 and row[0] - t0 >= restart:  # a new start of the node
+                    det, t0 = ChangeDetector(setting), row[0]
+                    starts += 1
                 phase = int(det.colour_in_use) + int(det.colour_complete)
                 before = det.counters.tested
                 alarms[phase] += det.update(row[0], row[1:]) is not None
@@ -292,9 +308,11 @@ def main() -> int:
             what = ("" if learn_s is not None else
                     (", before the colour", ", with the colour on a shorter history",
                      ", with the colour")[phase])
-            say(f"  {label}{what}: " + rate_line(alarms[phase], hours))
+            say(f"  {label}{what}: " + rate_line(alarms[phase], hours)
+                + (f" ({starts} starts)" if learn_s is None else ""))
             figures["false_alarms"].append({  # type: ignore[attr-defined]
                 "detector": label + what, "alarms": alarms[phase], "hours": hours,
+                "starts": starts if learn_s is None else len(recs),
                 "per_hour_95": list(rate_bounds(alarms[phase], hours)),
                 "design_per_hour": design})
     if a.trial:

@@ -11,7 +11,8 @@ Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.j
 ``hours`` (``dvt-bench identify --hours 1 --json``), ``loop`` (``dvt-bench loop
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
 randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
-false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``), ``secant`` (the
+false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``),
+``detector_starts`` (its first minutes after 150 starts, the same script), ``secant`` (the
 compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
 (hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``dry_step``
 (the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``belt``
@@ -120,6 +121,10 @@ def false_effects() -> tuple[list[str], dict[str, Any]]:
 
 DETECTOR_ARGS = ["--seeds", *(str(s) for s in range(3100, 3108)), "--seconds", "1500", "--json"]
 """``detector``: 8 clean plants of 25 min (the figures of docs/loop.md, "Limits")."""
+DETECTOR_STARTS_ARGS = ["--seeds", *(str(s) for s in range(4000, 4030)), "--seconds", "1800",
+                        "--restart-s", "360", "--node-only", "--json"]
+"""``detector_starts``: 30 clean plants of 30 min, a new detector every 6 min (150 starts: the
+first minutes after a start, docs/loop.md "Limits")."""
 
 
 def _script(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
@@ -141,6 +146,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "false_effects": false_effects,
     "compare": _bench("identify", "--compare", "ident-none-1=ident-none-val", "--json"),
     "detector": _script("scripts/detector_residual.py", *DETECTOR_ARGS),
+    "detector_starts": _script("scripts/detector_residual.py", *DETECTOR_STARTS_ARGS),
     "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
@@ -177,10 +183,12 @@ def _pair(d: Any, fmt: str = ".2f") -> str:
 
 def _row_emps(f: dict[str, Any]) -> tuple[str, str]:
     rows = {r.get("label", ""): r for r in _get(f, "benchmark", "rows") or []}
-    ours: dict[str, Any] = next((r for k, r in rows.items() if k.startswith("dvt-identify, chosen")), {})
+    ours: dict[str, Any] = next((r for k, r in rows.items()
+                                 if k.startswith("dvt-identify, chosen")), {})
     lin: dict[str, Any] = next((r for k, r in rows.items() if "linear reference" in k), {})
     parts = _get(f, "benchmark", "part_fits") or {}
-    whole: dict[str, Any] = next((r for r in parts.get("rows", []) if r.get("part") == "whole record"), {})
+    whole: dict[str, Any] = next((r for r in parts.get("rows", [])
+                                  if r.get("part") == "whole record"), {})
     lin_whole = ""
     if "linear_test_rms_mm" in whole:
         lw = whole["linear_test_rms_mm"]
@@ -275,6 +283,26 @@ def _row_detector(f: dict[str, Any]) -> tuple[str, str]:
             f"{_n(colour.get('design_per_hour'), '.2f')}/h")
 
 
+def _row_detector_starts(f: dict[str, Any]) -> tuple[str, str]:
+    rows = f.get("false_alarms") or []
+
+    def rate(r: dict[str, Any]) -> str:
+        b = r.get("per_hour_95") or [None, None]
+        return (f"{_n(r.get('alarms'))} in {_n(r.get('hours'), '.2f')} h (one-sided 95 % "
+                f"{_n(b[0], '.2f')} to {_n(b[1], '.2f')}/h)")
+    parts = {"before the colour": "before the colour", "shorter history": "the colour on "
+             "60-240 s of history"}
+    shown = [f"{label} {rate(r)}" for key, label in parts.items()
+             for r in rows if str(r.get("detector", "")).endswith(key)]
+    starts = next((r.get("starts") for r in rows), None)
+    alarms = sum(int(r.get("alarms") or 0) for r in rows
+                 if not str(r.get("detector", "")).endswith("with the colour"))
+    return ("the change detector's first minutes after a start, clean simulated plant "
+            f"({_n(starts)} starts)",
+            "; ".join(shown) + f": {_n(alarms)} false alarms, "
+            f"{alarms / starts if starts else float('nan'):.2f} per start; design 0.25/h")
+
+
 def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
     ident = _get(f, "closed_loop", "identification") or {}
     acc = ident.get("accepted") if isinstance(ident, dict) else None
@@ -302,7 +330,8 @@ def _row_belt(f: dict[str, Any]) -> tuple[str, str]:
 ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
     "emps": _row_emps, "identify": _row_identify, "hours": _row_hours, "loop": _row_loop,
     "model": _row_model, "false_effects": _row_false, "compare": _row_compare,
-    "demo": _row_demo, "detector": _row_detector, "belt": _row_belt}
+    "demo": _row_demo, "detector": _row_detector, "detector_starts": _row_detector_starts,
+    "belt": _row_belt}
 
 
 def table() -> str:
