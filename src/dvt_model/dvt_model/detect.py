@@ -51,11 +51,17 @@ first fit on (a new reference window starts then) every reference window learns 
 and the innovation scale (standard deviation of ``a_t = c_t - sum_j a_j c_(t-j)``), and each
 sample is whitened by the newest AR when the window ends; ``k``, ``h`` as above with the step
 gain ``1 - sum_j a_j``. While the history grows the colour is fitted on less than ``colour_s``
-(:attr:`ChangeDetector.colour_in_use_s`); its first fit on the full ``colour_s`` starts a new
-reference window once more (:attr:`ChangeDetector.colour_complete`: the design holds from
-there). The colour is kept across alarms and :meth:`~ChangeDetector.reset`; an alarm removes
-the history from its estimated change time on, a reset the chunk in progress, a gap or a
-non-finite sample ends a chunk (one shorter than ``10 x`` the longest lag is dropped). Before
+(:attr:`ChangeDetector.colour_in_use_s`) and leaves slow colour in the whitened residual (a
+CUSUM on it alarmed about 7 times an hour on the simulated plant in minutes 1-5): each refit
+then whitens the reference window in use again (testing goes on, no new window), and ``h`` is
+designed for whitened increments of long-run variance ``lam`` (:attr:`Reference.lam`), the
+largest batch-means ratio (:func:`long_run_ratio`) of the newest chunk whitened by the colour
+before it (out of sample; the first colour by itself). Its first fit on the full ``colour_s``
+starts a new reference window once more, with ``lam`` 1
+(:attr:`ChangeDetector.colour_complete`: the design holds from there). The colour is kept
+across alarms and :meth:`~ChangeDetector.reset`; an alarm removes the history from its
+estimated change time on, a reset the chunk in progress, a gap or a non-finite sample ends a
+chunk (one shorter than ``10 x`` the longest lag is dropped). Before
 the first fit (the first chunk after a start) the detector runs with each window's
 ARMA(1, 1), and its false-alarm rate there is that design's on the residual at hand.
 
@@ -95,6 +101,10 @@ MAX_COLOUR_ORDER = 2000
 COLOUR_CHUNK_S = 60.0
 """The colour's history is pooled in chunks of this length [s] (at least the reference
 window and ``10 x colour_lag_s``); a gap, a reset or an alarm ends a chunk early."""
+
+LRV_BATCHES_S = (0.5, 1.0, 2.0, 4.0)
+"""Batch lengths [s] over which :func:`long_run_ratio` looks for slow colour the whitening
+left (the CUSUM's small reference value accumulates a wander of seconds)."""
 
 PREFIX = "detector"
 """Prefix of the model-node parameters that configure the detector (``detector.learn_s``...)."""
@@ -204,7 +214,10 @@ class Reference:
     alarms of one side of this output; ``last_r``, ``last_a`` the filter state at the window's
     end [rad/s]; ``order`` the AR order of the long-window whitening (0: the window's own
     ARMA(1, 1)); ``gain`` [-] the steady-state response of the whitened residual to a step of the
-    residual (``(1 - phi) / (1 + theta)``, or ``1 - sum(a_j)`` of the AR whitening).
+    residual (``(1 - phi) / (1 + theta)``, or ``1 - sum(a_j)`` of the AR whitening); ``lam`` [-]
+    the long-run variance of the whitened residual relative to its variance that the design
+    allowed for (1: white; above 1 while the colour is learned on less than ``colour_s``,
+    :func:`long_run_ratio`).
     """
 
     level: float
@@ -219,6 +232,7 @@ class Reference:
     last_a: float = 0.0
     order: int = 0
     gain: float = 1.0
+    lam: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -310,7 +324,8 @@ def siegmund_arl(k: float | NDArray[np.float64], h: float | NDArray[np.float64],
     x = -2.0 * delta * b
     small = np.abs(delta) < 1e-9
     d = np.where(small, 1.0, delta)
-    arl = (np.exp(np.minimum(x, 700.0)) + (-x) - 1.0) / (2.0 * d * d)
+    with np.errstate(over="ignore"):  # an infinite run length: no false alarm
+        arl = (np.exp(np.minimum(x, 700.0)) + (-x) - 1.0) / (2.0 * d * d)
     return np.asarray(np.where(small, b * b, arl), dtype=float)
 
 
@@ -405,7 +420,8 @@ def ar_by_aic(acov: NDArray[np.float64], n: int, max_order: int) -> NDArray[np.f
 
 
 def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
-                          colour: NDArray[np.float64] | None = None) -> Reference:
+                          colour: NDArray[np.float64] | None = None, lam: float = 1.0
+                          ) -> Reference:
     """Learn one output's :class:`Reference` from its reference window (1-D, [rad/s]).
 
     ARMA(1, 1) by the method of moments on the winsorised, centred window: ``phi`` from the
@@ -417,7 +433,8 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
 
     With ``colour`` (AR coefficients ``a_1..a_p`` of :func:`ar_by_aic`, learned on a long
     history) the window gives only the level and the scale: ``a_t = c_t - sum_j a_j c_(t-j)``
-    from lag ``p`` on, ``phi`` and ``theta`` 0, ``order`` ``p``.
+    from lag ``p`` on, ``phi`` and ``theta`` 0, ``order`` ``p``; ``lam`` (at least 1) is the
+    whitened residual's long-run variance ratio the threshold allows for (:func:`_design`).
     """
     from scipy.signal import lfilter
 
@@ -430,7 +447,8 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
     c = r - level
     n = c.size
     if colour is not None:
-        return _ar_reference(window, c, level, mad, np.asarray(colour, dtype=float), config)
+        return _ar_reference(window, c, level, mad, np.asarray(colour, dtype=float), config,
+                             lam)
     # elementwise products, not BLAS dot: no thread pool wakes up inside the 1 kHz loop
     den = float(np.sum(c * c))
     phi = 0.0
@@ -466,20 +484,45 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
                      last_a=float(a[-1]) if a.size else 0.0, gain=gain)
 
 
-def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig
-            ) -> tuple[float, float, float]:
+def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig,
+            lam: float = 1.0) -> tuple[float, float, float]:
     """``k``, ``h`` and one side's designed mean time between false alarms [s] of an output
-    whose residual scale is ``sigma``, innovation scale ``sigma_e`` and step gain ``gain``."""
+    whose residual scale is ``sigma``, innovation scale ``sigma_e`` and step gain ``gain``;
+    with ``lam`` > 1 ``h`` is designed for whitened increments of long-run variance ``lam``
+    (the CUSUM acts as on unit increments with ``k`` and ``h`` divided by ``sqrt(lam)``)."""
     k = 0.5 * config.shift_sigma * sigma * gain / sigma_e
     n_sides = 2 * len(config.names)
     rate = 1.0 / (config.false_alarm_period_s * config.sample_rate_hz * n_sides)
-    h = design_threshold(k, 2.0 * rate, config.learn_samples)
-    arl_side = 1.0 / (0.5 * false_alarm_rate(k, h, config.learn_samples))
-    return k, h, arl_side / config.sample_rate_hz
+    root = math.sqrt(max(lam, 1.0))
+    h = design_threshold(k / root, 2.0 * rate, config.learn_samples)
+    arl_side = 1.0 / (0.5 * false_alarm_rate(k / root, h, config.learn_samples))
+    return k, h * root, arl_side / config.sample_rate_hz
+
+
+def long_run_ratio(z: NDArray[np.float64], sample_rate_hz: float) -> float:
+    """How much slow colour a whitened series ``z`` (1-D) still holds: the largest over the
+    batch lengths :data:`LRV_BATCHES_S` of ``B`` times the mean square of its centred means of
+    ``B`` samples over its variance (1 for white noise), at least 1; 1 when the series has
+    fewer than 4 batches of the shortest length."""
+    x = np.asarray(z, dtype=float)
+    x = x - float(np.mean(x)) if x.size else x
+    var = float(np.mean(x * x)) if x.size else 0.0
+    if not var > 0:
+        return 1.0
+    out = 1.0
+    for secs in LRV_BATCHES_S:
+        b = max(1, round(secs * sample_rate_hz))
+        n = x.size // b
+        if n < 4:
+            break
+        m = x[: n * b].reshape(n, b).mean(axis=1)
+        out = max(out, b * float(np.mean(m * m)) / var)
+    return out
 
 
 def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: float,
-                  mad: float, coef: NDArray[np.float64], config: DetectorConfig) -> Reference:
+                  mad: float, coef: NDArray[np.float64], config: DetectorConfig,
+                  lam: float = 1.0) -> Reference:
     """:func:`reference_from_window` with the long-window whitening ``coef`` (``a_1..a_p``)."""
     from scipy.signal import lfilter
 
@@ -494,9 +537,19 @@ def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: fl
     sigma = mad if mad > 0 else sigma_e
     # Yule-Walker on biased autocovariances is stationary: sum(a_j) < 1
     gain = max(1.0 - float(np.sum(coef)), 1e-6)
-    k, h, arl0_s = _design(sigma, sigma_e, gain, config)
+    lam = max(float(lam), 1.0)
+    k, h, arl0_s = _design(sigma, sigma_e, gain, config, lam)
     return Reference(level=level, phi=0.0, theta=0.0, sigma_e=sigma_e, sigma=sigma, k=k, h=h,
-                     arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain)
+                     arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain, lam=lam)
+
+
+def _ar_whiten(x: NDArray[np.float64], coef: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``x`` (1-D) centred and whitened by the AR ``coef`` (``a_1..a_p``), from lag ``p`` on."""
+    from scipy.signal import lfilter
+
+    p = coef.size
+    c = np.asarray(x, dtype=float) - float(np.mean(x))
+    return np.asarray(lfilter(np.concatenate([[1.0], -coef]), [1.0], c), dtype=float)[p:]
 
 
 def warm_up(config: DetectorConfig) -> None:
@@ -557,6 +610,7 @@ class ChangeDetector:
         self._pool: deque[tuple[float, int, NDArray[np.float64]]] = deque()
         self._colour: list[NDArray[np.float64]] | None = None
         self._colour_fit_n = 0  # samples the latest colour was fitted on
+        self._colour_lam = [1.0] * self.n  # its whitening's long-run variance ratio
         self._colour_used_n = 0  # ... and the colour the reference in use whitens by
         self._colour_rev: list[NDArray[np.float64]] = []
         self._order = 0
@@ -644,7 +698,7 @@ class ChangeDetector:
             name = self.config.names[i]
             out.update({f"{name}.sigma_rad_s": f"{ref.sigma:.6g}", f"{name}.phi": f"{ref.phi:.4f}",
                         f"{name}.k": f"{ref.k:.4g}", f"{name}.h": f"{ref.h:.4g}",
-                        f"{name}.ar_order": str(ref.order),
+                        f"{name}.ar_order": str(ref.order), f"{name}.lam": f"{ref.lam:.3g}",
                         f"{name}.cusum_up": f"{self._hi[i]:.3g}",
                         f"{name}.cusum_down": f"{self._lo[i]:.3g}"})
         if c.last_alarm is not None:
@@ -797,7 +851,8 @@ class ChangeDetector:
                 ch.clear()
             return False
         P = self._P
-        prods = np.stack([lagged_products(np.asarray(ch, dtype=float), P) for ch in self._chunk])
+        raw = [np.asarray(ch, dtype=float) for ch in self._chunk]
+        prods = np.stack([lagged_products(x, P) for x in raw])
         for ch in self._chunk:
             ch.clear()
         self._pool.append((self._chunk_end, m, prods))
@@ -809,15 +864,25 @@ class ChangeDetector:
             return False
         acov = np.sum([pp for _, _, pp in self._pool], axis=0) / total
         first = self._colour is None
+        previous = self._colour
         self._colour = [ar_by_aic(acov[i], total, P) for i in range(self.n)]
         self._colour_fit_n = total
         self.counters.colour_fits += 1
+        # the slow colour a colour on less than colour_s leaves: measured on this chunk
+        # whitened by the colour before it (out of sample; the first by its own, in sample),
+        # allowed for in the threshold until the colour has its full history (then the
+        # design holds: docs/loop.md "Colour")
+        self._colour_lam = [1.0 if total >= need else long_run_ratio(
+            _ar_whiten(raw[i], (self._colour if previous is None else previous)[i]),
+            self.config.sample_rate_hz) for i in range(self.n)]
         # a colour on the full history replaces a shorter one in a reference being tested
         # (one being learned takes the newest colour when it ends)
-        grown = (total >= need and not self.learning and self._order > 0
-                 and self._colour_used_n < need)
+        testing = not self.learning and self._order > 0
+        grown = testing and total >= need and self._colour_used_n < need
         if first or grown:
             self._relearn()
+        elif testing and self._colour_used_n < need:
+            self._rewhiten()  # a longer, not yet full history: the same reference window
         return first or grown
 
     def _alarm(self, i: int, t: float, up: bool) -> Alarm:
@@ -832,10 +897,17 @@ class ChangeDetector:
                      threshold=ref.h, samples=count, shift=shift,
                      shift_sigma=shift / ref.sigma, level=ref.level, sigma=ref.sigma)
 
-    def _finish_learning(self) -> None:
+    def _rewhiten(self) -> None:
+        """Whiten by the newest colour (on a longer, not yet full history) from now on: the
+        references of the same reference window again, with its long-run variance ratio;
+        the CUSUMs restart at 0 (testing goes on, no new window)."""
+        self._finish_learning(count=False)
+
+    def _finish_learning(self, count: bool = True) -> None:
         colour = self._colour
         refs = [reference_from_window(np.asarray(self._buf[i]), self.config,
-                                      None if colour is None else colour[i])
+                                      None if colour is None else colour[i],
+                                      self._colour_lam[i] if colour is not None else 1.0)
                 for i in range(self.n)]
         self.references = refs
         if colour is not None:
@@ -844,13 +916,14 @@ class ChangeDetector:
             # history needed before testing; at least 1 so that a white output (order 0)
             # still marks the colour as in use
             self._order = max(1, *(a.size for a in colour))
-            P = self._P
-            for i in range(self.n):
-                tail = np.asarray(self._buf[i][-P:], dtype=float)
-                self._ring[i, :P] = tail
-                self._ring[i, P:] = tail
-            self._w = 0
-            self._hist = P
+            if count:  # a rewhitening keeps the history the ring holds
+                P = self._P
+                for i in range(self.n):
+                    tail = np.asarray(self._buf[i][-P:], dtype=float)
+                    self._ring[i, :P] = tail
+                    self._ring[i, P:] = tail
+                self._w = 0
+                self._hist = P
         for i, ref in enumerate(refs):
             self._level[i] = ref.level
             self._phi[i] = ref.phi
@@ -863,4 +936,5 @@ class ChangeDetector:
             self._k[i] = ref.k
             self._h[i] = ref.h
             self._hi[i] = self._lo[i] = 0.0
-        self.counters.learned += 1
+        if count:
+            self.counters.learned += 1

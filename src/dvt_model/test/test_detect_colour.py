@@ -14,6 +14,7 @@ from dvt_model.detect import (
     DetectorConfig,
     ar_by_aic,
     lagged_products,
+    long_run_ratio,
     reference_from_window,
 )
 from dvt_model.errors import ParameterError
@@ -110,6 +111,61 @@ def test_colour_is_learned_on_the_first_chunk_and_grows_to_colour_s() -> None:
     status = det.status()
     assert status["colour_progress"] == "1.00" and status["sun_shaft.ar_order"] == str(orders[0])
     assert det.counters.alarms == 0
+
+
+def slow_and_white(rng: np.random.Generator, n: int, outputs: int = 2) -> np.ndarray:
+    """``(n, outputs)``: an AR(1) of pole 0.999 (a 10-s time constant at 100 Hz) of standard
+    deviation 1 plus white noise of 1: its AR(infinity) decays over far more lags than a
+    1-s colour holds, so the whitened series keeps slow colour."""
+    slow = lfilter([1.0], [1.0, -0.999], rng.standard_normal((n + 20_000, outputs))
+                   * math.sqrt(1 - 0.999 ** 2), axis=0)[20_000:]
+    return np.asarray(slow + rng.standard_normal((n, outputs)))
+
+
+def test_long_run_ratio_is_one_for_white_and_large_for_slow_colour() -> None:
+    rng = np.random.default_rng(8)
+    assert 1.0 <= long_run_ratio(rng.standard_normal(60_000), RATE) < 1.3
+    assert long_run_ratio(slow_and_white(rng, 60_000, 1)[:, 0], RATE) > 20.0
+    assert long_run_ratio(np.zeros(1000), RATE) == 1.0  # nothing to measure
+    assert long_run_ratio(rng.standard_normal(150), RATE) == 1.0  # fewer than 4 batches
+
+
+def test_a_growing_colour_whitens_without_a_new_window_and_allows_for_its_shortfall() -> None:
+    """colour_s 240 s: the first colour (60 s) starts a reference window, the next two (120,
+    180 s) whiten the same window's reference again while testing goes on, with the slow
+    colour they leave in the threshold (``lam`` > 1, ``h`` up); the full one (240 s) starts
+    a window again, designed for white increments (``lam`` 1)."""
+    cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=240.0, colour_lag_s=1.0).validated()
+    det = ChangeDetector(cfg)
+    x = 0.01 * slow_and_white(np.random.default_rng(9), round(320 * RATE))
+    relearned, seen = [], []  # new reference windows; (sample, history [s], lam, h) per refit
+    fits = 0
+    for j, row in enumerate(x.tolist()):
+        testing = not det.learning
+        det.update(j / RATE, row)
+        if testing and det.learning:
+            relearned.append(j)
+        if det.counters.colour_fits > fits:
+            fits = det.counters.colour_fits
+            seen.append((j, round(det.colour_in_use_s), [r.lam for r in det.references],
+                         [r.h for r in det.references], det.learning))
+    assert relearned == [round(60 * RATE) - 1, round(240 * RATE) - 1], relearned
+    assert len(seen) == 5, seen  # the colour fits every 60 s
+    growth = seen[1:3]
+    assert [(s[1], s[4]) for s in growth] == [(120, False), (180, False)]  # testing went on
+    assert all(lam >= 1.0 for s in growth for lam in s[2]), growth
+    assert all(max(s[2]) > 1.5 for s in growth), growth
+    assert det.colour_complete and all(r.lam == 1.0 for r in det.references)
+    # a reference allowing for a shortfall lam: the same k, h designed for increments of
+    # long-run variance lam (k and h act divided by sqrt(lam)): higher than for white ones
+    window = x[: cfg.learn_samples, 0]
+    white = reference_from_window(window, cfg, np.asarray(AR2))
+    short = reference_from_window(window, cfg, np.asarray(AR2), lam=4.0)
+    assert white.lam == 1.0 and short.lam == 4.0 and short.k == white.k
+    assert short.h > 2.0 * white.h  # above sqrt(lam) times: the smaller k/sqrt(lam) needs more
+    assert reference_from_window(window, cfg, np.asarray(AR2), lam=0.5).h == white.h  # >= 1
+    status = det.status()
+    assert status["sun_shaft.lam"] == "1"
 
 
 def test_reset_keeps_the_colour_and_an_alarm_drops_the_history_since_the_change() -> None:
