@@ -267,16 +267,19 @@ def _row_compare(f: dict[str, Any]) -> tuple[str, str]:
             f"{_n(peer.get('fit_seconds'), '.0f')} s")
 
 
+def _alarm_rate(r: dict[str, Any]) -> str:
+    """A false-alarm row of ``scripts/detector_residual.py``: count, hours and bounds."""
+    b = r.get("per_hour_95") or [None, None]
+    return (f"{_n(r.get('alarms'))} in {_n(r.get('hours'), '.2f')} h (one-sided 95 % "
+            f"{_n(b[0], '.2f')} to {_n(b[1], '.2f')}/h)")
+
+
 def _row_detector(f: dict[str, Any]) -> tuple[str, str]:
     rows = {r.get("detector", ""): r for r in f.get("false_alarms") or []}
     colour: dict[str, Any] = next((r for k, r in rows.items() if k.endswith("with the colour")),
                                   {})
     arma: dict[str, Any] = next((r for k, r in rows.items() if k == "colour_s 0, learn_s 20"), {})
-
-    def rate(r: dict[str, Any]) -> str:
-        b = r.get("per_hour_95") or [None, None]
-        return (f"{_n(r.get('alarms'))} in {_n(r.get('hours'), '.2f')} h (one-sided 95 % "
-                f"{_n(b[0], '.2f')} to {_n(b[1], '.2f')}/h)")
+    rate = _alarm_rate
     return ("the change detector's false alarms on the clean simulated plant (node path, "
             f"{len(f.get('seeds') or [])} runs of {_n(f.get('seconds_each'), '.0f')} s)",
             f"with the colour {rate(colour)}; each window's ARMA(1,1) {rate(arma)}; design "
@@ -285,14 +288,9 @@ def _row_detector(f: dict[str, Any]) -> tuple[str, str]:
 
 def _row_detector_starts(f: dict[str, Any]) -> tuple[str, str]:
     rows = f.get("false_alarms") or []
-
-    def rate(r: dict[str, Any]) -> str:
-        b = r.get("per_hour_95") or [None, None]
-        return (f"{_n(r.get('alarms'))} in {_n(r.get('hours'), '.2f')} h (one-sided 95 % "
-                f"{_n(b[0], '.2f')} to {_n(b[1], '.2f')}/h)")
     parts = {"before the colour": "before the colour", "shorter history": "the colour on "
              "60-240 s of history"}
-    shown = [f"{label} {rate(r)}" for key, label in parts.items()
+    shown = [f"{label} {_alarm_rate(r)}" for key, label in parts.items()
              for r in rows if str(r.get("detector", "")).endswith(key)]
     starts = next((r.get("starts") for r in rows), None)
     alarms = sum(int(r.get("alarms") or 0) for r in rows

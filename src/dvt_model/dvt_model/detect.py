@@ -488,12 +488,13 @@ def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig,
             lam: float = 1.0) -> tuple[float, float, float]:
     """``k``, ``h`` and one side's designed mean time between false alarms [s] of an output
     whose residual scale is ``sigma``, innovation scale ``sigma_e`` and step gain ``gain``;
-    with ``lam`` > 1 ``h`` is designed for whitened increments of long-run variance ``lam``
-    (the CUSUM acts as on unit increments with ``k`` and ``h`` divided by ``sqrt(lam)``)."""
+    with ``lam`` (at least 1) above 1, ``h`` is designed for whitened increments of long-run
+    variance ``lam`` (the CUSUM acts as on unit increments with ``k`` and ``h`` divided by
+    ``sqrt(lam)``)."""
     k = 0.5 * config.shift_sigma * sigma * gain / sigma_e
     n_sides = 2 * len(config.names)
     rate = 1.0 / (config.false_alarm_period_s * config.sample_rate_hz * n_sides)
-    root = math.sqrt(max(lam, 1.0))
+    root = math.sqrt(lam)
     h = design_threshold(k / root, 2.0 * rate, config.learn_samples)
     arl_side = 1.0 / (0.5 * false_alarm_rate(k / root, h, config.learn_samples))
     return k, h * root, arl_side / config.sample_rate_hz
@@ -524,10 +525,8 @@ def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: fl
                   mad: float, coef: NDArray[np.float64], config: DetectorConfig,
                   lam: float = 1.0) -> Reference:
     """:func:`reference_from_window` with the long-window whitening ``coef`` (``a_1..a_p``)."""
-    from scipy.signal import lfilter
-
     p = coef.size
-    a = np.asarray(lfilter(np.concatenate([[1.0], -coef]), [1.0], c), dtype=float)[p:]
+    a = _ar_whiten(c, coef)
     # the standard deviation, not the MAD: the window is winsorised already, and with the
     # small k of a slow residual the false-alarm rate follows the innovations' variance
     # closely (a MAD 2.4 % below it doubled the rate on the simulated plant's sun shaft)
@@ -544,12 +543,13 @@ def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: fl
 
 
 def _ar_whiten(x: NDArray[np.float64], coef: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``x`` (1-D) centred and whitened by the AR ``coef`` (``a_1..a_p``), from lag ``p`` on."""
+    """``x`` (1-D) whitened by the AR ``coef`` (``a_1..a_p``): ``x_t - sum_j a_j x_(t-j)`` from
+    lag ``p`` on (a level of ``x`` stays a level, times ``1 - sum_j a_j``)."""
     from scipy.signal import lfilter
 
     p = coef.size
-    c = np.asarray(x, dtype=float) - float(np.mean(x))
-    return np.asarray(lfilter(np.concatenate([[1.0], -coef]), [1.0], c), dtype=float)[p:]
+    return np.asarray(lfilter(np.concatenate([[1.0], -coef]), [1.0], np.asarray(x, float)),
+                      dtype=float)[p:]
 
 
 def warm_up(config: DetectorConfig) -> None:
