@@ -1,4 +1,4 @@
-"""``dvt-import``: turn NPZ or CSV columns into a rosbag2/MCAP bag of JointState messages.
+"""``dvt-import``: turn NPZ, MATLAB or CSV columns into a rosbag2/MCAP bag of JointState messages.
 
 A mapping says which column goes to which topic, joint and field. As YAML::
 
@@ -28,6 +28,14 @@ taken on the whole record before a ``range`` is cut out, so the cut has no end e
 
 CSV files: a header row, then numbers. Empty trailing cells (lines ending in a comma, as many
 loggers write them) and columns with an empty header and no values are ignored.
+
+NPZ and MATLAB files (``.mat``, format v5/v7 as MATLAB's ``save`` writes by default; a v7.3
+file is refused with the way out): every real numeric variable is a column. A vector of either
+orientation (MATLAB's ``N x 1`` or ``1 x N``) is one column of its name, a ``1 x 1`` a scalar;
+a matrix is one column per channel, named ``NAME.1`` ... ``NAME.K`` (MATLAB's ``NAME(:, 1)``
+...; the samples run along its longer side); a struct's fields are ``NAME.FIELD`` (nested
+alike). Text, cell arrays, objects, complex and higher-dimensional arrays are not columns
+(an error naming a missing column lists those that are).
 """
 
 from __future__ import annotations
@@ -83,7 +91,8 @@ class ImportMapping:
 
 
 def load_columns(path: str | Path) -> dict[str, Array]:
-    """Columns of an ``.npz`` (arrays; 0-d arrays are scalars) or a ``.csv`` with a header row.
+    """Columns of an ``.npz``, a MATLAB ``.mat`` or a ``.csv`` with a header row (see the module
+    docstring); each 1-D [samples] or 0-d (a scalar).
 
     Raises:
         ImportDataError: unreadable file, unknown format, non-numeric CSV cell.
@@ -91,19 +100,64 @@ def load_columns(path: str | Path) -> dict[str, Array]:
     p = Path(path)
     if not p.is_file():
         raise ImportDataError(f"{p}: file not found")
-    if p.suffix.lower() == ".npz":
+    suffix = p.suffix.lower()
+    if suffix == ".npz":
         try:
             with np.load(p, allow_pickle=False) as d:
-                return {k: np.asarray(d[k], dtype=float) for k in d.files}
+                return _numeric_columns({k: d[k] for k in d.files})
         except (OSError, ValueError) as exc:
             raise ImportDataError(f"{p}: cannot read NPZ: {exc}") from exc
-    if p.suffix.lower() == ".csv":
+    if suffix == ".mat":
+        return _numeric_columns(_mat_variables(p))
+    if suffix == ".csv":
         with p.open(newline="") as fh:
             rows = list(csv.reader(fh))
         if len(rows) < 2:
             raise ImportDataError(f"{p}: expected a header row and data rows")
         return _csv_columns(p, rows)
-    raise ImportDataError(f"{p}: unknown format {p.suffix!r} (expected .npz or .csv)")
+    raise ImportDataError(f"{p}: unknown format {p.suffix!r} (expected .npz, .mat or .csv)")
+
+
+def _mat_variables(p: Path) -> dict[str, Any]:
+    """The variables of MATLAB file ``p`` (structs as dicts, cell arrays as lists)."""
+    from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
+
+    try:
+        data = loadmat(p, simplify_cells=True)
+    except NotImplementedError:  # scipy's answer to the HDF5-based v7.3 format
+        raise ImportDataError(
+            f"{p}: MATLAB v7.3 (HDF5) file, not read here: save it again in MATLAB with "
+            f"save('{p.name}', '-v7') (the default format), or write its columns to .npz or "
+            ".csv") from None
+    except (MatReadError, OSError, ValueError, TypeError) as exc:
+        raise ImportDataError(f"{p}: cannot read MATLAB file: {exc}") from exc
+    return {k: v for k, v in data.items() if not k.startswith("__")}
+
+
+def _numeric_columns(items: Mapping[str, Any], prefix: str = "") -> dict[str, Array]:
+    """The columns of NPZ arrays or MATLAB variables ``items`` (see the module docstring)."""
+    out: dict[str, Array] = {}
+    for key, value in items.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_numeric_columns(value, f"{name}."))
+            continue
+        a = np.asarray(value) if isinstance(value, (np.ndarray, np.generic, int, float)) \
+            else None
+        if a is None or a.dtype.kind not in "biuf":
+            continue  # text, cells, objects, complex: not columns
+        a = a.astype(float)
+        if a.ndim > 1 and sum(d > 1 for d in a.shape) <= 1:
+            a = a.reshape(-1) if a.size > 1 else a.reshape(())
+        if a.ndim <= 1:
+            out[name] = a
+        elif a.ndim == 2:
+            if a.shape[0] < a.shape[1]:
+                a = a.T  # channels x samples: the samples run along the longer side
+            for j in range(a.shape[1]):
+                out[f"{name}.{j + 1}"] = a[:, j]
+    return out
 
 
 def _trim(row: list[str]) -> list[str]:
@@ -358,8 +412,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``dvt-import``; returns the exit status."""
     ap = argparse.ArgumentParser(
         prog="dvt-import",
-        description="Convert NPZ/CSV columns into a rosbag2 (MCAP) bag of JointState messages.")
-    ap.add_argument("source", help="input file (.npz or .csv)")
+        description="Convert NPZ, MATLAB or CSV columns into a rosbag2 (MCAP) bag of "
+                    "JointState messages.")
+    ap.add_argument("source", help="input file (.npz, .mat or .csv)")
     ap.add_argument("--out", required=True, help="output bag directory (must not exist)")
     ap.add_argument("--mapping", help="YAML mapping file (see docs)")
     ap.add_argument("--time", help="time column [s] (overrides the mapping's)")

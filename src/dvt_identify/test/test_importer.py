@@ -179,3 +179,62 @@ def test_mapping_time_and_dt_exclusive(tmp_path: Path) -> None:
         parse_mapping({"dt": -1, "signals": sig}, "m.yaml")
     with pytest.raises(ImportDataError, match="range: expected 0 <= start < stop"):
         parse_mapping({"time": "t", "range": "5:2", "signals": sig}, "m.yaml")
+
+
+def _mat(tmp_path: Path) -> Path:
+    """A MATLAB v5 file as MATLAB writes a logger's record: column vectors, a scalar gain, a
+    two-channel matrix, a struct, and variables that are not columns (text, cells, complex)."""
+    from scipy.io import savemat
+
+    p = tmp_path / "rec.mat"
+    savemat(p, {"t": T[:, None], "qm": (0.5 * T ** 2)[:, None], "gtau": 35.0,
+                "y": np.column_stack([np.sin(T), np.cos(T)]),
+                "meta": {"kv": 2.5, "ref": {"qg": T[None, :]}},
+                "note": "bench 3", "cells": np.array([T[:2], "x"], dtype=object),
+                "z": T + 1j})
+    return p
+
+
+def test_mat_variables_are_columns(tmp_path: Path) -> None:
+    """MATLAB vectors of either orientation are columns, 1 x 1 a scalar, a matrix one column per
+    channel (``y.1``, ``y.2``), a struct's fields ``meta.kv``; text, cells and complex are not."""
+    cols = load_columns(_mat(tmp_path))
+    assert sorted(cols) == ["gtau", "meta.kv", "meta.ref.qg", "qm", "t", "y.1", "y.2"]
+    assert cols["t"].shape == (T.size,) and cols["meta.ref.qg"] == pytest.approx(T)
+    assert cols["gtau"].shape == () and float(cols["gtau"]) == 35.0
+    assert cols["y.2"] == pytest.approx(np.cos(T))
+    # channels x samples: the samples run along the longer side
+    np.savez(tmp_path / "rows.npz", t=T, y=np.vstack([T, 2 * T]), q=T[:, None])
+    npz = load_columns(tmp_path / "rows.npz")
+    assert npz["y.2"] == pytest.approx(2 * T) and npz["q"].shape == (T.size,)
+
+
+def test_mat_to_bag_through_the_cli(tmp_path: Path) -> None:
+    """``dvt-import rec.mat`` with a struct field as a factor writes the bag as from NPZ."""
+    out = tmp_path / "bag"
+    assert main([str(_mat(tmp_path)), "--time", "t", "--out", str(out),
+                 "--signal", "/x/js", "s", "position", "qm",
+                 "--signal", "/x/drive", "s", "effort", "y.1 * gtau / meta.kv"]) == 0
+    back = read_jointstate_topics(out, ["/x/js", "/x/drive"])
+    assert back["/x/drive"].effort is not None and back["/x/js"].position is not None
+    assert back["/x/drive"].effort[:, 0] == pytest.approx(np.sin(T) * 35.0 / 2.5)
+    assert back["/x/js"].position[:, 0] == pytest.approx(0.5 * T ** 2)
+
+
+def test_mat_errors_name_the_file_and_the_way_out(tmp_path: Path) -> None:
+    """A v7.3 (HDF5) file is refused with how to save it readable; a broken one names the file;
+    a missing column lists the columns the file has."""
+    v73 = tmp_path / "big.mat"
+    header = bytearray(b" " * 128)
+    header[:19] = b"MATLAB 7.3 MAT-file"
+    header[124:128] = b"\x00\x02IM"
+    v73.write_bytes(bytes(header) + b"\x89HDF\r\n\x1a\n" + bytes(600))
+    with pytest.raises(ImportDataError, match=r"big\.mat: MATLAB v7\.3 .*'-v7'"):
+        load_columns(v73)
+    broken = tmp_path / "broken.mat"
+    broken.write_bytes(b"not a mat file" * 20)
+    with pytest.raises(ImportDataError, match=r"broken\.mat: cannot read MATLAB file"):
+        load_columns(broken)
+    with pytest.raises(ImportDataError, match=r"column 'note' not found \(columns: gtau, "
+                                              r"meta\.kv, meta\.ref\.qg, qm, t, y\.1, y\.2\)"):
+        import_columns(_mat(tmp_path), tmp_path / "bag", _mapping(("/x", "j", "effort", "note")))
