@@ -29,8 +29,9 @@ taken on the whole record before a ``range`` is cut out, so the cut has no end e
 CSV files: a header row, then numbers. Empty trailing cells (lines ending in a comma, as many
 loggers write them) and columns with an empty header and no values are ignored.
 
-NPZ and MATLAB files (``.mat``, format v5/v7 as MATLAB's ``save`` writes by default; a v7.3
-file is refused with the way out): every real numeric variable is a column. A vector of either
+NPZ and MATLAB files (``.mat``: v5/v7 as MATLAB's ``save`` writes by default, read by
+``scipy.io.loadmat``; v7.3, MATLAB's HDF5 format for large variables, read by ``h5py``): every
+real numeric variable is a column. A vector of either
 orientation (MATLAB's ``N x 1`` or ``1 x N``) is one column of its name, a ``1 x 1`` a scalar;
 a matrix is one column per channel, named ``NAME.1`` ... ``NAME.K`` (MATLAB's ``NAME(:, 1)``
 ...; the samples run along its longer side); a struct's fields are ``NAME.FIELD`` (nested
@@ -119,20 +120,47 @@ def load_columns(path: str | Path) -> dict[str, Array]:
 
 
 def _mat_variables(p: Path) -> dict[str, Any]:
-    """The variables of MATLAB file ``p`` (structs as dicts, cell arrays as lists)."""
+    """The variables of MATLAB file ``p`` (structs as dicts; cell arrays, text and other
+    classes as values :func:`_numeric_columns` skips)."""
     from scipy.io import loadmat
     from scipy.io.matlab import MatReadError
 
     try:
         data = loadmat(p, simplify_cells=True)
     except NotImplementedError:  # scipy's answer to the HDF5-based v7.3 format
-        raise ImportDataError(
-            f"{p}: MATLAB v7.3 (HDF5) file, not read here: save it again in MATLAB with "
-            f"save('{p.name}', '-v7') (the default format), or write its columns to .npz or "
-            ".csv") from None
+        return _mat73_variables(p)
     except (MatReadError, OSError, ValueError, TypeError) as exc:
         raise ImportDataError(f"{p}: cannot read MATLAB file: {exc}") from exc
     return {k: v for k, v in data.items() if not k.startswith("__")}
+
+
+def _mat73_variables(p: Path) -> dict[str, Any]:
+    """The numeric variables of MATLAB v7.3 (HDF5) file ``p``, in MATLAB's orientation (HDF5
+    stores MATLAB's column-major arrays with their dimensions reversed); structs as dicts."""
+    import h5py
+
+    def matlab_class(node: Any) -> str:
+        c = node.attrs.get("MATLAB_class", b"")
+        return c.decode() if isinstance(c, bytes) else str(c)
+
+    def read(group: Any) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, node in group.items():
+            if key.startswith("#"):  # MATLAB's reference and subsystem stores
+                continue
+            if isinstance(node, h5py.Group):
+                if matlab_class(node) == "struct" and "MATLAB_sparse" not in node.attrs:
+                    out[key] = read(node)
+            elif (matlab_class(node) not in ("char", "cell")
+                  and not node.attrs.get("MATLAB_empty", 0) and node.dtype.kind in "biuf"):
+                out[key] = np.asarray(node[()]).T
+        return out
+
+    try:
+        with h5py.File(p, "r") as f:
+            return read(f)
+    except OSError as exc:
+        raise ImportDataError(f"{p}: cannot read MATLAB v7.3 (HDF5) file: {exc}") from exc
 
 
 def _numeric_columns(items: Mapping[str, Any], prefix: str = "") -> dict[str, Array]:

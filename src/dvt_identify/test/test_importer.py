@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -195,15 +196,52 @@ def _mat(tmp_path: Path) -> Path:
     return p
 
 
-def test_mat_variables_are_columns(tmp_path: Path) -> None:
+def _mat73(tmp_path: Path) -> Path:
+    """The same record as :func:`_mat` in MATLAB's v7.3 layout: HDF5 behind a 512-byte MATLAB
+    header, each array stored with its dimensions reversed and its ``MATLAB_class``, structs as
+    groups, text as UTF-16 codes, MATLAB's ``#refs#`` store."""
+    import h5py
+
+    p = tmp_path / "rec73.mat"
+    with h5py.File(p, "w", userblock_size=512) as f:
+        def put(group: h5py.Group, name: str, value: object, cls: str = "double") -> None:
+            group.create_dataset(name, data=np.asarray(value).T).attrs["MATLAB_class"] = (
+                np.bytes_(cls))
+
+        def struct(group: h5py.Group, name: str) -> h5py.Group:
+            g = group.create_group(name)
+            g.attrs["MATLAB_class"] = np.bytes_("struct")
+            return g
+
+        put(f, "t", T[:, None])
+        put(f, "qm", (0.5 * T ** 2)[:, None])
+        put(f, "gtau", [[35.0]])
+        put(f, "y", np.column_stack([np.sin(T), np.cos(T)]))
+        meta = struct(f, "meta")
+        put(meta, "kv", [[2.5]])
+        put(struct(meta, "ref"), "qg", T[None, :])
+        put(f, "note", np.frombuffer("bench 3".encode("utf-16-le"), np.uint16)[None, :], "char")
+        f.create_group("#refs#").create_dataset("a", data=np.zeros(2))
+    with p.open("r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, HDF5 schema 1.00 .".ljust(124)
+                 + b"\x00\x02IM")
+    return p
+
+
+@pytest.mark.parametrize("write", [_mat, _mat73], ids=["v5", "v7.3"])
+def test_mat_variables_are_columns(tmp_path: Path, write: Any) -> None:
     """MATLAB vectors of either orientation are columns, 1 x 1 a scalar, a matrix one column per
-    channel (``y.1``, ``y.2``), a struct's fields ``meta.kv``; text, cells and complex are not."""
-    cols = load_columns(_mat(tmp_path))
+    channel (``y.1``, ``y.2``), a struct's fields ``meta.kv``; text, cells and complex are not;
+    the v7.3 (HDF5) layout gives the same columns as v5."""
+    cols = load_columns(write(tmp_path))
     assert sorted(cols) == ["gtau", "meta.kv", "meta.ref.qg", "qm", "t", "y.1", "y.2"]
     assert cols["t"].shape == (T.size,) and cols["meta.ref.qg"] == pytest.approx(T)
     assert cols["gtau"].shape == () and float(cols["gtau"]) == 35.0
-    assert cols["y.2"] == pytest.approx(np.cos(T))
-    # channels x samples: the samples run along the longer side
+    assert cols["y.2"] == pytest.approx(np.cos(T)) and cols["y.1"] == pytest.approx(np.sin(T))
+
+
+def test_npz_arrays_of_matlab_shapes_are_columns(tmp_path: Path) -> None:
+    """An NPZ ``N x 1`` array is a column; channels x samples run along the longer side."""
     np.savez(tmp_path / "rows.npz", t=T, y=np.vstack([T, 2 * T]), q=T[:, None])
     npz = load_columns(tmp_path / "rows.npz")
     assert npz["y.2"] == pytest.approx(2 * T) and npz["q"].shape == (T.size,)
@@ -221,15 +259,12 @@ def test_mat_to_bag_through_the_cli(tmp_path: Path) -> None:
     assert back["/x/js"].position[:, 0] == pytest.approx(0.5 * T ** 2)
 
 
-def test_mat_errors_name_the_file_and_the_way_out(tmp_path: Path) -> None:
-    """A v7.3 (HDF5) file is refused with how to save it readable; a broken one names the file;
-    a missing column lists the columns the file has."""
+def test_mat_errors_name_the_file(tmp_path: Path) -> None:
+    """A v7.3 header with no readable HDF5 behind it, and a file that is no MATLAB file, name the
+    file; a missing column lists the columns the file has."""
     v73 = tmp_path / "big.mat"
-    header = bytearray(b" " * 128)
-    header[:19] = b"MATLAB 7.3 MAT-file"
-    header[124:128] = b"\x00\x02IM"
-    v73.write_bytes(bytes(header) + b"\x89HDF\r\n\x1a\n" + bytes(600))
-    with pytest.raises(ImportDataError, match=r"big\.mat: MATLAB v7\.3 .*'-v7'"):
+    v73.write_bytes(b"MATLAB 7.3 MAT-file".ljust(124) + b"\x00\x02IM" + bytes(600))
+    with pytest.raises(ImportDataError, match=r"big\.mat: cannot read MATLAB v7\.3 \(HDF5\) file"):
         load_columns(v73)
     broken = tmp_path / "broken.mat"
     broken.write_bytes(b"not a mat file" * 20)
