@@ -27,14 +27,9 @@ done
 bin="$root/.venv/bin"
 mkdir -p "$out"
 for rec in estimation validation; do
-  # Force on the load F = gtau * vir [N] (vir in V already contains the validation pulses:
-  # never add pulses_N again); load velocity = zero-phase 4th-order Butterworth (100 Hz) on the
-  # encoder position qm, then central differences.
+  # force F = gtau * vir [N], the carriage's position and its filtered derivative: mapping.yaml
   "$bin/dvt-import" "$emps/emps_$rec.npz" --out "$out/bags/emps_$rec" --force \
-    --time t --derivative-cutoff 100 --derivative-order 4 \
-    --signal /emps/joint_states carriage position qm \
-    --signal /emps/joint_states carriage velocity "d(qm)" \
-    --signal /emps/drive carriage effort "vir * gtau"
+    --mapping "$here/mapping.yaml"
 done
 # The benchmark's figure, every choice made on the estimation record (its last 30 % held out
 # for the choice of effects); the test record is read after every choice, initial states from
