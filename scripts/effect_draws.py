@@ -10,9 +10,15 @@ several fit decimations shares nothing but the seeds), identified as
 (``HiddenEffects.effect_names`` and where they act), the fitted effect parameters with their
 std, the masses' largest relative error against the plant's.
 
+Each row says whether the accepted effects name what the plant hides, where it acts, and
+nothing else (``tests/recorded.py`` ``named_as_drawn``, the rule of the tests on the committed
+recordings). A wet band is recorded with ``ident_shifts`` (:data:`EXPERIMENT`).
+
 Usage: ``.venv/bin/python scripts/effect_draws.py [--presets P ...] [--draws N ...] [--json]``
-(about 15 s per row on 2 cores, two rows at a time); ``scripts/results.sh draws`` writes
-``docs/results/draws.json`` with the defaults.
+(about 15 s per row on 2 cores, two rows at a time; ``--presets other``: the presets beside the
+frictions, :data:`OTHER_PRESETS`); ``scripts/results.sh draws`` writes
+``docs/results/draws.json`` with the defaults, ``scripts/results.sh draws_other`` with
+``--presets other``.
 """
 
 from __future__ import annotations
@@ -34,6 +40,12 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 PRESETS = ("coulomb", "stribeck", "windage")
 DRAWS = (301, 302, 303, 304)
+OTHER_PRESETS = ("delay", "backlash", "wet_brake", "gravity_arm", "mesh_ripple",
+                 "position_friction")
+"""The plant's other hidden-effect presets (``scripts/results.sh draws_other``)."""
+EXPERIMENT = {"wet_brake": "ident_shifts"}
+"""The experiment a preset is recorded with when not ``ident``: a wet band shows only in
+engagements, which ``ident`` has too few of to determine (the identifiability check's advice)."""
 
 
 def record_draw(preset: str, draw: int, root: Path) -> tuple[Path, Path]:
@@ -46,16 +58,17 @@ def record_draw(preset: str, draw: int, root: Path) -> tuple[Path, Path]:
 
     params = load_parameters("physical")
     hidden = load_hidden(preset, draw=draw)
-    return (record_offline(root / "est", build("ident", seed=400 + draw), params, hidden,
+    experiment = EXPERIMENT.get(preset, "ident")
+    return (record_offline(root / "est", build(experiment, seed=400 + draw), params, hidden,
                            seed=500 + draw),
-            record_offline(root / "val", build("ident", seed=600 + draw), params, hidden,
+            record_offline(root / "val", build(experiment, seed=600 + draw), params, hidden,
                            seed=700 + draw))
 
 
 def one(preset: str, draw: int, tmp: str, fit_decimate: int | None = None) -> dict[str, Any]:
     """Record and identify ``preset`` at ``draw`` (module docstring), fitted at the
     description's rate or with ``fit_decimate``; the row."""
-    from recorded import PLANT_MEMBER, identify_bags
+    from recorded import PLANT_MEMBER, identify_bags, named_as_drawn
 
     from dvt_driver.plant.hidden import load_hidden
     from dvt_identify.bench_identify.compare import md_errors, truth_md
@@ -69,9 +82,11 @@ def one(preset: str, draw: int, tmp: str, fit_decimate: int | None = None) -> di
     structure = set(fit.model.names[: fit.model.n_struct])
     plant = {kind: {PLANT_MEMBER.get(m, m): v for m, v in getattr(hidden, kind).items()}
              for kind in ("coulomb", "stribeck", "windage") if getattr(hidden, kind)}
+    accepted = [(d.score.effect.name, d.score.effect.where, d.score.label) for d in r.accepted]
     return {"preset": preset, "draw": draw, "fit_decimate": fit_decimate,
-            "fit_dt": r.fit_dt,
-            "accepted": [d.score.label for d in r.accepted],
+            "experiment": EXPERIMENT.get(preset, "ident"), "fit_dt": r.fit_dt,
+            "accepted": [label for _, _, label in accepted],
+            "named_as_drawn": named_as_drawn(hidden, accepted),
             "plant": json.loads(json.dumps(plant, default=lambda o: vars(o))),
             "effect_parameters": {k: [v, std.get(k)] for k, v in fit.parameters().items()
                                   if k not in structure and k in std},
@@ -81,12 +96,14 @@ def one(preset: str, draw: int, tmp: str, fit_decimate: int | None = None) -> di
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--presets", nargs="+", default=list(PRESETS))
+    ap.add_argument("--presets", nargs="+", default=list(PRESETS),
+                    help="plant presets ('other': " + ", ".join(OTHER_PRESETS) + ")")
     ap.add_argument("--draws", nargs="+", type=int, default=list(DRAWS))
     ap.add_argument("--fit-decimate", nargs="+", type=int, default=[None],
                     help="fit decimations to run each case at (default: the description's)")
     ap.add_argument("--json", action="store_true", help="print one JSON document")
     args = ap.parse_args(argv)
+    args.presets = [q for p in args.presets for q in (OTHER_PRESETS if p == "other" else [p])]
     cases = [(p, d, f) for p in args.presets for d in args.draws for f in args.fit_decimate]
     with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(
             max_workers=2, mp_context=mp.get_context("spawn")) as pool:
@@ -97,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for r in rows:
         print(f"{r['preset']} draw {r['draw']} (fit step {r['fit_dt']:g} s): accepted "
-              f"{', '.join(r['accepted']) or 'none'}; plant {r['plant']}; M off by "
-              f"{r.get('M_error_percent', np.nan):.2f} %")
+              f"{', '.join(r['accepted']) or 'none'} (named as drawn: {r['named_as_drawn']}); "
+              f"plant {r['plant']}; M off by {r.get('M_error_percent', np.nan):.2f} %")
     return 0
 
 

@@ -14,7 +14,8 @@ randomised clean plants of tests/test_false_effects.py), ``detector`` (the chang
 false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``),
 ``detector_starts`` (its first minutes after 150 starts, the same script), ``secant`` (the
 compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
-(hidden effects on fresh draws of the presets, ``scripts/effect_draws.py``), ``dry_step``
+(hidden effects on fresh draws of the friction presets, ``scripts/effect_draws.py``),
+``draws_other`` (the same on the plant's other presets), ``dry_step``
 (the fit step's bias on a model with dry friction, ``scripts/dry_step_bias.py``), ``belt``
 and ``belt_friction`` (random belt drives read by a sign-blind pulse counter, without and with a
 Coulomb friction on the motor, ``scripts/belt_draws.py``), ``belt_window`` (the same drives,
@@ -149,6 +150,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "detector_starts": _script("scripts/detector_residual.py", *DETECTOR_STARTS_ARGS),
     "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
+    "draws_other": _script("scripts/effect_draws.py", "--presets", "other", "--json"),
     "dry_step": _script("scripts/dry_step_bias.py", "--json"),
     "first_refits": _script("scripts/first_refits.py", "--json"),
     "first_refits_1k": _script("scripts/first_refits.py", "--rate", "1000", "--json"),
@@ -325,11 +327,25 @@ def _row_belt(f: dict[str, Any]) -> tuple[str, str]:
             f"{_n(s.get('better_than_reference'))} of {_n(n)}")
 
 
+def _row_draws(f: dict[str, Any]) -> tuple[str, str]:
+    rows = [r for r in f.get("rows") or [] if isinstance(r, dict)]
+    presets = list(dict.fromkeys(str(r.get("preset")) for r in rows))
+    named = [r for r in rows if r.get("named_as_drawn") is True]
+    missed = [f"{r.get('preset')} {r.get('draw')}: "
+              f"{', '.join(map(str, r.get('accepted') or [])) or 'nothing'}"
+              for r in rows if r.get("named_as_drawn") is not True]
+    return (f"hidden effects on fresh draws of the plant's presets ({', '.join(presets)}; "
+            f"{len(rows) // max(len(presets), 1)} draws each), identified as `dvt-identify` "
+            "does: the accepted effects name what the plant hides, where it acts, and nothing "
+            "else",
+            f"{len(named)} of {len(rows)}" + (f"; not: {'; '.join(missed)}" if missed else ""))
+
+
 ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
     "emps": _row_emps, "identify": _row_identify, "hours": _row_hours, "loop": _row_loop,
     "model": _row_model, "false_effects": _row_false, "compare": _row_compare,
     "demo": _row_demo, "detector": _row_detector, "detector_starts": _row_detector_starts,
-    "belt": _row_belt}
+    "belt": _row_belt, "draws": _row_draws, "draws_other": _row_draws}
 
 
 def table() -> str:

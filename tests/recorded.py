@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from dvt_driver.plant.hidden import HiddenEffects, parse_hidden
@@ -27,6 +28,11 @@ BAGS = Path(__file__).resolve().parents[1] / "bags"
 PLANT_MEMBER = {"sun": "sun_shaft", "carrier3": "carrier3"}
 """The plant's kinematic member -> the dvt description's state (``where``) it is."""
 
+NO_CANDIDATE_LAW = ("stribeck", "position_friction")
+"""Hidden effects whose law no candidate of the ``dvt`` description has: the plant's Stribeck
+curve (static + Coulomb + regularised sign) and a friction that depends on where the member
+stands (named by :func:`named_as_drawn` from where the accepted effects act)."""
+
 STD_BOUND = 3.0
 """An estimate must lie within this many reported standard deviations of the truth."""
 
@@ -38,6 +44,57 @@ def truth_effects(bag: Path) -> HiddenEffects:
     assert truth is not None, f"{bag}: no truth.yaml"
     h = parse_hidden(truth["hidden"], source=f"{bag.name}/truth.yaml")
     return dataclasses.replace(h, draw=truth.get("hidden_draw"))
+
+
+def expected_labels(t: HiddenEffects) -> set[str]:
+    """The accepted effects that name plant ``t``'s hidden effects where they act, in the
+    ``dvt`` description's labels (``effect@where``), for every effect whose law a candidate
+    has (:data:`NO_CANDIDATE_LAW`: none)."""
+    out = {f"coulomb_friction@{PLANT_MEMBER[m]}" for m in t.coulomb}
+    out |= {f"windage@{PLANT_MEMBER[m]}" for m in t.windage}
+    if t.measurement_delay > 0:  # the plant delays both speed measurements
+        out |= {"measurement_delay@sun_shaft", "measurement_delay@carrier3"}
+    if t.backlash is not None:
+        # play in a compliant spline to a load behind the carrier-3 tachometer: the load's
+        # impacts make the measured speed a staircase only the compliant play explains
+        assert t.backlash.where == "carrier3_output", t.backlash.where
+        out.add("backlash@carrier3(compliant)")
+    if t.wet_brake:
+        # no torque while the oil film is squeezed out, then an S-shaped rise: one engagement
+        # dead time shared by the three bands explains it
+        out.add("brake_engagement@brakes(dead_time)")
+    if t.gravity_arm is not None:
+        out.add("gravity_load@carrier3")
+    if t.mesh_ripple is not None:  # periodic in the sun's own angle
+        out.add("periodic_disturbance@sun_shaft")
+    return out
+
+
+def named_as_drawn(t: HiddenEffects, accepted: Sequence[tuple[str, str, str]]) -> bool:
+    """Whether the accepted effects ``(effect name, where, label)`` name what plant ``t``
+    hides, where it acts, and nothing else: the labels of :func:`expected_labels`, and for
+    the laws no candidate has a dry friction (Coulomb or Stribeck) on each member with the
+    plant's Stribeck curve and on no other, and for a friction that depends on position only
+    effects on its member (at least one)."""
+    labels = {label for _, _, label in accepted}
+    expected = expected_labels(t)
+    if expected <= labels:
+        labels -= expected
+    else:
+        return False
+    rest = [(n, w) for n, w, label in accepted if label in labels]
+    if t.stribeck:
+        members = {PLANT_MEMBER[m] for m in t.stribeck}
+        dry = [(n, w) for n, w in rest if n in ("coulomb_friction", "stribeck_friction")]
+        if {w for _, w in dry} != members:
+            return False
+        rest = [x for x in rest if x not in dry or x[1] not in members]
+    if t.position_friction:
+        members = {PLANT_MEMBER[m] for m in t.position_friction}
+        if not any(w in members for _, w in rest):
+            return False
+        rest = [x for x in rest if x[1] not in members]
+    return not rest
 
 
 def within(name: str, estimate: float, std: float, truth: float,

@@ -24,11 +24,17 @@ resolution).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from recorded import BAGS, PLANT_MEMBER, identify_recorded, truth_effects, within
+from recorded import (
+    BAGS,
+    PLANT_MEMBER,
+    expected_labels,
+    identify_recorded,
+    truth_effects,
+    within,
+)
 
 from dvt_driver.plant.hidden import HiddenEffects
 from dvt_identify.effects.brakes import EngagementDeadTime
@@ -67,41 +73,9 @@ def test_clean_plant_accepts_nothing(tmp_path: Path) -> None:
     assert min(r.baseline.val.fit_percent) > 96.0
 
 
-# -- where each plant's effect acts, in the identifier's labels ----------------------------------
+# -- the recordings whose effect's law a candidate has (labels: recorded.expected_labels) ------
 
-def _coulomb(t: HiddenEffects) -> set[str]:
-    return {f"coulomb_friction@{PLANT_MEMBER[m]}" for m in t.coulomb}
-
-
-def _windage(t: HiddenEffects) -> set[str]:
-    return {f"windage@{PLANT_MEMBER[m]}" for m in t.windage}
-
-
-def _delay(t: HiddenEffects) -> set[str]:
-    # the plant delays both speed measurements
-    return {"measurement_delay@sun_shaft", "measurement_delay@carrier3"}
-
-
-def _backlash(t: HiddenEffects) -> set[str]:
-    assert t.backlash is not None and t.backlash.where == "carrier3_output"
-    return {"backlash@carrier3(compliant)"}
-
-
-def _wet_brake(t: HiddenEffects) -> set[str]:
-    return {"brake_engagement@brakes(dead_time)"}
-
-
-EXPECTED: dict[str, Callable[[HiddenEffects], set[str]]] = {
-    "ident-coulomb": _coulomb,
-    "ident-windage": _windage,
-    "ident-delay": _delay,
-    # play in a compliant spline to a load behind the carrier-3 tachometer: the load's
-    # impacts make the measured speed a staircase only the compliant play explains
-    "ident-backlash": _backlash,
-    # wet bands (shift-rich run): no torque while the oil film is squeezed out, then an
-    # S-shaped rise; one engagement dead time shared by the three bands explains it
-    "ident-wet_brake": _wet_brake,
-}
+LABELLED = ("ident-coulomb", "ident-windage", "ident-delay", "ident-backlash", "ident-wet_brake")
 
 
 def _stribeck_where(r: IdentificationResult, t: HiddenEffects) -> None:
@@ -115,7 +89,7 @@ def _stribeck_where(r: IdentificationResult, t: HiddenEffects) -> None:
     assert {w for _, w in got} == members, got
 
 
-@pytest.mark.parametrize("bag", [*EXPECTED, "ident-stribeck"])
+@pytest.mark.parametrize("bag", [*LABELLED, "ident-stribeck"])
 def test_hidden_effect_is_found_where_it_acts(
         bag: str, results: dict[str, tuple[IdentificationResult, HiddenEffects]],
         tmp_path_factory: pytest.TempPathFactory) -> None:
@@ -131,7 +105,7 @@ def test_hidden_effect_is_found_where_it_acts(
         assert r.rounds[0][0].effect.name in ("coulomb_friction", "stribeck_friction")
         _stribeck_where(r, truth)
     else:
-        expected = EXPECTED[bag](truth)
+        expected = expected_labels(truth)
         assert r.rounds[0][0].label in expected, [s.label for s in r.rounds[0][:4]]
         assert labels and set(labels) <= expected, [d.as_dict() for d in r.decisions]
         assert r.accepted[0].round == 1
