@@ -334,10 +334,20 @@ def _row_draws(f: dict[str, Any]) -> tuple[str, str]:
     missed = [f"{r.get('preset')} {r.get('draw')}: "
               f"{', '.join(map(str, r.get('accepted') or [])) or 'nothing'}"
               for r in rows if r.get("named_as_drawn") is not True]
+    rules = []
+    if "stribeck" in presets:
+        strib = [r for r in rows if r.get("preset") == "stribeck"]
+        humps = sum(all(f"stribeck_friction@{m}" in (r.get("accepted") or [])
+                        for m in _get(r, "plant", "stribeck") or {}) for r in strib)
+        rules.append("the Stribeck curve by a dry friction on each member it acts on; its "
+                     f"hump on every such member in {humps} of {len(strib)}")
+    if "position_friction" in presets:
+        rules.append("the friction that depends on position, which no candidate has, by "
+                     "effects on its member only")
     return (f"hidden effects on fresh draws of the plant's presets ({', '.join(presets)}; "
             f"{len(rows) // max(len(presets), 1)} draws each), identified as `dvt-identify` "
             "does: the accepted effects name what the plant hides, where it acts, and nothing "
-            "else",
+            "else" + (f" ({'; '.join(rules)})" if rules else ""),
             f"{len(named)} of {len(rows)}" + (f"; not: {'; '.join(missed)}" if missed else ""))
 
 
