@@ -31,12 +31,12 @@ loggers write them) and columns with an empty header and no values are ignored.
 
 NPZ and MATLAB files (``.mat``: v5/v7 as MATLAB's ``save`` writes by default, read by
 ``scipy.io.loadmat``; v7.3, MATLAB's HDF5 format for large variables, read by ``h5py``): every
-real numeric variable is a column. A vector of either
-orientation (MATLAB's ``N x 1`` or ``1 x N``) is one column of its name, a ``1 x 1`` a scalar;
-a matrix is one column per channel, named ``NAME.1`` ... ``NAME.K`` (MATLAB's ``NAME(:, 1)``
-...; the samples run along its longer side); a struct's fields are ``NAME.FIELD`` (nested
-alike). Text, cell arrays, objects, complex and higher-dimensional arrays are not columns
-(an error naming a missing column lists those that are).
+real numeric variable is a column. A vector of either orientation (MATLAB's ``N x 1`` or
+``1 x N``) is one column of its name, a ``1 x 1`` a scalar; a matrix is one column per channel,
+named ``NAME.1`` ... ``NAME.K`` (MATLAB's ``NAME(:, 1)`` ...; the samples run along its longer
+side); a struct's fields are ``NAME.FIELD`` (nested alike). Text, cell arrays, objects, complex,
+empty and higher-dimensional arrays are not columns (an error naming a missing column lists
+those that are).
 """
 
 from __future__ import annotations
@@ -173,8 +173,8 @@ def _numeric_columns(items: Mapping[str, Any], prefix: str = "") -> dict[str, Ar
             continue
         a = np.asarray(value) if isinstance(value, (np.ndarray, np.generic, int, float)) \
             else None
-        if a is None or a.dtype.kind not in "biuf":
-            continue  # text, cells, objects, complex: not columns
+        if a is None or a.dtype.kind not in "biuf" or a.size == 0:
+            continue  # text, cells, objects, complex, empty: not columns
         a = a.astype(float)
         if a.ndim > 1 and sum(d > 1 for d in a.shape) <= 1:
             a = a.reshape(-1) if a.size > 1 else a.reshape(())

@@ -184,7 +184,8 @@ def test_mapping_time_and_dt_exclusive(tmp_path: Path) -> None:
 
 def _mat(tmp_path: Path) -> Path:
     """A MATLAB v5 file as MATLAB writes a logger's record: column vectors, a scalar gain, a
-    two-channel matrix, a struct, and variables that are not columns (text, cells, complex)."""
+    two-channel matrix, a struct, and variables that are not columns (text, cells, complex,
+    empty)."""
     from scipy.io import savemat
 
     p = tmp_path / "rec.mat"
@@ -192,7 +193,7 @@ def _mat(tmp_path: Path) -> Path:
                 "y": np.column_stack([np.sin(T), np.cos(T)]),
                 "meta": {"kv": 2.5, "ref": {"qg": T[None, :]}},
                 "note": "bench 3", "cells": np.array([T[:2], "x"], dtype=object),
-                "z": T + 1j})
+                "z": T + 1j, "empty": np.zeros((0, 0))})
     return p
 
 
