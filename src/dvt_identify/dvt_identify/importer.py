@@ -14,6 +14,8 @@ A mapping says which column goes to which topic, joint and field. As YAML::
 
 or on the command line: ``--time t --signal /emps/drive carriage effort "vir*gtau"`` (repeat),
 ``--dt 0.001`` instead of ``--time`` for a file without a time column, ``--range 100:20100``.
+``dvt-import FILE --list`` shows the columns a file has (name, length, range; a strictly
+increasing one is flagged as a time column) and writes nothing.
 
 Expressions: ``COLUMN``, ``d(COLUMN)`` (time derivative) or ``dN(COLUMN)`` (the N-th derivative,
 e.g. ``d2(qm)`` for an acceleration), optionally followed by ``* FACTOR`` or
@@ -117,6 +119,30 @@ def load_columns(path: str | Path) -> dict[str, Array]:
             raise ImportDataError(f"{p}: expected a header row and data rows")
         return _csv_columns(p, rows)
     raise ImportDataError(f"{p}: unknown format {p.suffix!r} (expected .npz, .mat or .csv)")
+
+
+def describe_columns(cols: Mapping[str, Array]) -> list[str]:
+    """One line per column of :func:`load_columns` (``dvt-import FILE --list``): its name, then
+    a scalar's value, or a column's length, range and, when it strictly increases (a time
+    column), its mean step."""
+    width = max((len(k) for k in cols), default=0)
+    lines = []
+    for name in sorted(cols):
+        c = np.asarray(cols[name], dtype=float)
+        if c.ndim == 0:
+            lines.append(f"{name:<{width}}  scalar {float(c):.6g}")
+            continue
+        ok = c[np.isfinite(c)]
+        line = f"{name:<{width}}  {c.size} samples"
+        if ok.size:
+            line += f", {float(ok.min()):.6g} .. {float(ok.max()):.6g}"
+        if ok.size < c.size:
+            line += f", {c.size - ok.size} non-finite"
+        d = np.diff(c)
+        if c.size > 1 and ok.size == c.size and np.all(d > 0):
+            line += f", increasing: mean step {float(d.mean()):.6g} (a time column?)"
+        lines.append(line)
+    return lines
 
 
 def _mat_variables(p: Path) -> dict[str, Any]:
@@ -443,7 +469,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         description="Convert NPZ, MATLAB or CSV columns into a rosbag2 (MCAP) bag of "
                     "JointState messages.")
     ap.add_argument("source", help="input file (.npz, .mat or .csv)")
-    ap.add_argument("--out", required=True, help="output bag directory (must not exist)")
+    ap.add_argument("--out", help="output bag directory (must not exist; required unless --list)")
+    ap.add_argument("--list", action="store_true",
+                    help="only list the file's columns (name, length, range) and exit")
     ap.add_argument("--mapping", help="YAML mapping file (see docs)")
     ap.add_argument("--time", help="time column [s] (overrides the mapping's)")
     ap.add_argument("--dt", type=float, default=None,
@@ -461,6 +489,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="stamp of the first sample [s] (default 0)")
     ap.add_argument("--force", action="store_true", help="replace an existing output bag")
     args = ap.parse_args(argv)
+    if args.list:
+        try:
+            cols = load_columns(args.source)
+        except DvtIdentifyError as exc:
+            print(f"dvt-import: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"{args.source}: {len(cols)} columns")
+        for line in describe_columns(cols):
+            print(f"  {line}")
+        return 0
+    if not args.out:
+        ap.error("--out is required (or --list to see the file's columns)")
     try:
         data: dict[str, Any] = {}
         if args.mapping:

@@ -15,6 +15,7 @@ from dvt_identify.importer import (
     SignalMap,
     build_topics,
     derivative,
+    describe_columns,
     evaluate,
     import_columns,
     load_columns,
@@ -274,3 +275,24 @@ def test_mat_errors_name_the_file(tmp_path: Path) -> None:
     with pytest.raises(ImportDataError, match=r"column 'note' not found \(columns: gtau, "
                                               r"meta\.kv, meta\.ref\.qg, qm, t, y\.1, y\.2\)"):
         import_columns(_mat(tmp_path), tmp_path / "bag", _mapping(("/x", "j", "effort", "note")))
+
+
+def test_list_shows_the_columns_and_writes_nothing(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """``--list`` prints each column (a scalar's value; a column's length and range, a time
+    column's step) and needs no ``--out``; without either, the command says what is missing."""
+    lines = describe_columns({"t": T, "gtau": np.float64(35.0), "q": np.r_[np.nan, T[1:]]})
+    assert lines[0].split() == ["gtau", "scalar", "35"]
+    assert "1000 samples, 0.001 .. 0.999, 1 non-finite" in lines[1] and "time" not in lines[1]
+    assert "1000 samples, 0 .. 0.999, increasing: mean step 0.001" in lines[2]
+    assert main([str(_mat(tmp_path)), "--list"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].endswith("rec.mat: 7 columns")
+    assert [ln.split()[0] for ln in out[1:]] == ["gtau", "meta.kv", "meta.ref.qg", "qm", "t",
+                                                 "y.1", "y.2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.mat"]
+    with pytest.raises(SystemExit) as exit_:
+        main([str(_mat(tmp_path)), "--time", "t"])
+    assert exit_.value.code == 2 and "--list" in capsys.readouterr().err
+    assert main([str(tmp_path / "none.mat"), "--list"]) == 2
+    assert "none.mat: file not found" in capsys.readouterr().err
