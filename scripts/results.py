@@ -281,10 +281,10 @@ def _row_detector(f: dict[str, Any]) -> tuple[str, str]:
     colour: dict[str, Any] = next((r for k, r in rows.items() if k.endswith("with the colour")),
                                   {})
     arma: dict[str, Any] = next((r for k, r in rows.items() if k == "colour_s 0, learn_s 20"), {})
-    rate = _alarm_rate
     return ("the change detector's false alarms on the clean simulated plant (node path, "
             f"{len(f.get('seeds') or [])} runs of {_n(f.get('seconds_each'), '.0f')} s)",
-            f"with the colour {rate(colour)}; each window's ARMA(1,1) {rate(arma)}; design "
+            f"with the colour {_alarm_rate(colour)}; each window's ARMA(1,1) "
+            f"{_alarm_rate(arma)}; design "
             f"{_n(colour.get('design_per_hour'), '.2f')}/h")
 
 

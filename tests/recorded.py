@@ -28,11 +28,6 @@ BAGS = Path(__file__).resolve().parents[1] / "bags"
 PLANT_MEMBER = {"sun": "sun_shaft", "carrier3": "carrier3"}
 """The plant's kinematic member -> the dvt description's state (``where``) it is."""
 
-NO_CANDIDATE_LAW = ("stribeck", "position_friction")
-"""Hidden effects whose law no candidate of the ``dvt`` description has: the plant's Stribeck
-curve (static + Coulomb + regularised sign) and a friction that depends on where the member
-stands (named by :func:`named_as_drawn` from where the accepted effects act)."""
-
 STD_BOUND = 3.0
 """An estimate must lie within this many reported standard deviations of the truth."""
 
@@ -49,7 +44,8 @@ def truth_effects(bag: Path) -> HiddenEffects:
 def expected_labels(t: HiddenEffects) -> set[str]:
     """The accepted effects that name plant ``t``'s hidden effects where they act, in the
     ``dvt`` description's labels (``effect@where``), for every effect whose law a candidate
-    has (:data:`NO_CANDIDATE_LAW`: none)."""
+    has (none for the plant's Stribeck curve and its friction that depends on position:
+    :func:`named_as_drawn` names those by where the accepted effects act)."""
     out = {f"coulomb_friction@{PLANT_MEMBER[m]}" for m in t.coulomb}
     out |= {f"windage@{PLANT_MEMBER[m]}" for m in t.windage}
     if t.measurement_delay > 0:  # the plant delays both speed measurements
@@ -76,19 +72,16 @@ def named_as_drawn(t: HiddenEffects, accepted: Sequence[tuple[str, str, str]]) -
     the laws no candidate has a dry friction (Coulomb or Stribeck) on each member with the
     plant's Stribeck curve and on no other, and for a friction that depends on position only
     effects on its member (at least one)."""
-    labels = {label for _, _, label in accepted}
     expected = expected_labels(t)
-    if expected <= labels:
-        labels -= expected
-    else:
+    if not expected <= {label for _, _, label in accepted}:
         return False
-    rest = [(n, w) for n, w, label in accepted if label in labels]
+    rest = [(n, w) for n, w, label in accepted if label not in expected]
     if t.stribeck:
         members = {PLANT_MEMBER[m] for m in t.stribeck}
         dry = [(n, w) for n, w in rest if n in ("coulomb_friction", "stribeck_friction")]
         if {w for _, w in dry} != members:
             return False
-        rest = [x for x in rest if x not in dry or x[1] not in members]
+        rest = [x for x in rest if x not in dry]
     if t.position_friction:
         members = {PLANT_MEMBER[m] for m in t.position_friction}
         if not any(w in members for _, w in rest):
