@@ -69,7 +69,10 @@ On an alarm the detector returns an :class:`Alarm` (detection stamp, the estimat
 the stamp of the first sample after the CUSUM's last zero, output, direction, estimated shift),
 then re-learns a new reference window and keeps running. Non-finite residuals are skipped;
 a stamp gap longer than ``max_gap_s`` (or a stamp that does not increase) skips the whitening of
-the sample after it (the filter memory would be wrong).
+the sample after it (the filter memory would be wrong); while a reference window is learned it
+starts the window again from the sample after it (a window is contiguous: one spanning a gap,
+e.g. the model's re-anchor on lost samples, joins two residual levels and learns a colour near
+``max_phi``, a threshold the step never reaches).
 """
 
 from __future__ import annotations
@@ -738,6 +741,9 @@ class ChangeDetector:
                 return None  # a first or a full colour: a new reference window starts now
         if self._filled < self._L:
             j = self._filled
+            if gap and j:  # a reference window is contiguous: a gap starts it again
+                c.gaps += 1
+                j = 0
             if j == 0:
                 self._learn_from = t
             for i in range(n):

@@ -161,6 +161,35 @@ def test_non_finite_gaps_and_bad_input() -> None:
     assert c.skipped == 1 and c.gaps == 1 and c.tested == 1 and c.samples == 103
 
 
+def test_a_gap_while_learning_starts_the_reference_window_again() -> None:
+    """A reference window spanning a stamp gap (the model re-anchored on lost samples: the
+    residual's level differs on either side) would join two levels into one slow colour (phi
+    at ``max_phi``, a threshold no step reaches). The gap starts the window again: the
+    reference is learned on the samples after it alone (phi 0 on white noise), and a step of
+    ten noise sigmas after it alarms within 3 s (a window of 100 samples designs a high ``h``
+    for four hours between false alarms: about 2000 whitened sigmas)."""
+    config = DetectorConfig(learn_s=1.0, sample_rate_hz=100.0)
+    rng = np.random.default_rng(11)
+    det = ChangeDetector(config)
+    t = 0.0
+    for _ in range(60):  # 0.6 s of the window at one level
+        assert det.update(t, [0.5 + rng.normal(0.0, 0.05), rng.normal(0.0, 0.05)]) is None
+        t += 0.01
+    t += 0.2  # a gap: the level after it is another
+    for _ in range(100):  # a whole window after the gap
+        assert det.update(t, [rng.normal(0.0, 0.05), rng.normal(0.0, 0.05)]) is None
+        t += 0.01
+    assert not det.learning and det.counters.gaps == 1
+    ref = det.references[0]
+    assert det.counters.learned == 1 and ref.level == pytest.approx(0.0, abs=0.02), ref
+    assert ref.phi < 0.5, ref
+    alarm = None
+    for _ in range(300):  # a step of ten noise sigmas on the sun shaft
+        alarm = alarm or det.update(t, [0.5 + rng.normal(0.0, 0.05), rng.normal(0.0, 0.05)])
+        t += 0.01
+    assert alarm is not None and alarm.name == "sun_shaft", det.status()
+
+
 def test_alarm_json_round_trip() -> None:
     a = Alarm(stamp_s=12.5, change_s=10.25, output=1, name="carrier3", direction=-1,
               statistic=130.0, threshold=120.0, samples=2250, shift=-0.01, shift_sigma=-0.6,
