@@ -301,17 +301,19 @@ class Description:
         for c in specs:
             suffix = f"_{c.where}" if always or counts[c.effect] > 1 else ""
             states, outs = self.state_names, self.output_names
+            readout = tuple(getattr(self.structure, "output_states", ()))
             probe = make_effect(c.effect, c.where, states, self.input_names,
                                 member=c.member,
                                 options={k: v for k, v in c.options.items() if k != "initial"},
-                                suffix=suffix, output_names=outs)
+                                suffix=suffix, output_names=outs, output_states=readout)
             if any(p.name in taken for p in probe.params):
                 suffix += "_add"
             opts = {k: v for k, v in c.options.items() if k != "initial"}
             eff = make_effect(c.effect, c.where, states, self.input_names,
                               force_unit=self.structure.force_unit,
                               speed_unit=self.structure.speed_unit,
-                              member=c.member, options=opts, suffix=suffix, output_names=outs)
+                              member=c.member, options=opts, suffix=suffix, output_names=outs,
+                              output_states=readout)
             init = c.options.get("initial")
             if init is not None:
                 if not isinstance(init, dict):

@@ -32,7 +32,7 @@ from scipy import stats
 
 from dvt_identify.data import Segment
 from dvt_identify.effects.base import Array, SegmentView
-from dvt_identify.effects.position import Unlisted, angle_of
+from dvt_identify.effects.position import Unlisted, member_motion
 from dvt_identify.fit import OEFit, Progress
 from dvt_identify.scoring import (
     ABSORBED,
@@ -193,8 +193,7 @@ def search_unlisted(fit: OEFit, segments: Sequence[Segment], libraries: Sequence
     if not isinstance(prop, Unlisted):  # pragma: no cover - built by Unlisted.subset above
         return best
     first = segments[0]
-    _, source = angle_of(SegmentView.of(first),
-                         prop.require_member())
+    _, _, source = member_motion(SegmentView.of(first), prop.require_member(), prop.readout)
     best.extra.update({
         "formula": prop.formula([s.initial for s in prop.params]), "member": prop.member_name,
         "angle_source": source, **({"mesh_angles": prop.mesh_angles()}

@@ -28,6 +28,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 from collections.abc import Sequence
+from dataclasses import replace
 
 from dvt_identify.effects.backlash import Backlash, CompliantOutputBacklash, OutputBacklash
 from dvt_identify.effects.base import (
@@ -48,7 +49,7 @@ from dvt_identify.effects.friction import (
     Windage,
 )
 from dvt_identify.effects.periodic import PeriodicDisturbance
-from dvt_identify.effects.position import GravityLoad, Unlisted
+from dvt_identify.effects.position import GravityLoad, Unlisted, motion_unreadable
 from dvt_identify.effects.sensors import (
     MeasurementDelay,
     SensorGain,
@@ -81,7 +82,8 @@ VOCABULARY: tuple[str, ...] = tuple(dict.fromkeys(cls.name for cls in REGISTRY))
 def make_effect(name: str, where: str, state_names: Sequence[str], input_names: Sequence[str],
                 force_unit: str = "", speed_unit: str = "", member: Sequence[float] | None = None,
                 options: dict[str, object] | None = None, suffix: str = "",
-                output_names: Sequence[str] = ()) -> Effect:
+                output_names: Sequence[str] = (), output_states: Sequence[str] = ()
+                ) -> Effect:
     """Build a candidate effect: the first class of :data:`REGISTRY` named ``name`` that
     accepts ``where`` and the options.
 
@@ -98,6 +100,8 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
         suffix: appended to parameter names to keep them unique (e.g. ``_sun_shaft``).
         output_names: the measured outputs of a structure with hidden states (empty: the
             states); output effects act on these.
+        output_states: the state each of ``output_names`` reads (same length; empty: the
+            outputs are the states): the effect's :attr:`Effect.readout`.
 
     Raises:
         DescriptionError: unknown effect, state or input name, bad option.
@@ -113,7 +117,23 @@ def make_effect(name: str, where: str, state_names: Sequence[str], input_names: 
         raise DescriptionError(f"candidate effect {name!r}: unknown (known: "
                                f"{', '.join(VOCABULARY)})")
     cls = next((c for c in named if c.accepts(ctx)), named[-1])
-    return cls.build(ctx)
+    effect = cls.build(ctx)
+    if output_states:
+        unknown = [s for s in output_states if s not in ctx.state_names]
+        if unknown or len(output_states) != len(ctx.output_names):
+            raise DescriptionError(f"candidate {name}@{where}: output_states {list(output_states)}"
+                                   f": expected one state of {list(ctx.state_names)} per output "
+                                   f"{list(ctx.output_names)}")
+        effect = replace(effect, readout=tuple(ctx.state_names.index(s) for s in output_states))
+        if effect.reads_motion() and effect.member is not None:
+            why = motion_unreadable(effect.member, effect.readout)
+            if why is not None:
+                raise DescriptionError(
+                    f"candidate {name}@{where}: is evaluated on the member's measured motion, "
+                    f"but {why}; measured: "
+                    + ", ".join(f"{o} = {s}" for o, s in zip(ctx.output_names, output_states,
+                                                            strict=True)))
+    return effect
 
 
 __all__ = [

@@ -317,6 +317,11 @@ class Effect:
         member: member vector c, shape (nx,), for force effects; else ``None``.
         index: input or output index for input/output effects; else -1.
         options: effect-specific options from the description.
+        readout: the state each measured output reads (indices into the states, one per
+            output) when the structure has hidden states (a mechanical structure whose sensors
+            read positions, ``y = C x``); empty when the outputs are the states. An effect
+            evaluated on the measured motion reads a member's speed and angle through it
+            (:func:`dvt_identify.effects.position.member_motion`).
     """
 
     name: ClassVar[str] = "effect"
@@ -332,6 +337,7 @@ class Effect:
     member: Array | None = None
     index: int = -1
     options: dict[str, object] = field(default_factory=dict)
+    readout: tuple[int, ...] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Register every subclass that declares its own :attr:`name` (the registry,
@@ -340,6 +346,12 @@ class Effect:
         super().__init_subclass__(**kwargs)
         if "name" in cls.__dict__:
             _REGISTERED.append(cls)
+
+    def reads_motion(self) -> bool:
+        """Whether the effect is evaluated on the member's measured speed or angle (an
+        exogenous force: gravity, a periodic or ``unlisted`` term), so that a structure with
+        hidden states must measure the member's speed or position (:attr:`readout`)."""
+        return False
 
     def depends_on_angle(self) -> bool:
         """Whether the effect's force depends on a member's angle (gravity behind a stage, a

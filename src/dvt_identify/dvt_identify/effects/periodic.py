@@ -18,7 +18,12 @@ from dvt_identify.effects.base import (
     Term,
     numbers_option,
 )
-from dvt_identify.effects.position import angle_of, cell_mean_trig, mesh_members, mesh_orders
+from dvt_identify.effects.position import (
+    cell_mean_trig,
+    member_motion,
+    mesh_members,
+    mesh_orders,
+)
 from dvt_identify.errors import DescriptionError
 
 
@@ -51,6 +56,10 @@ class PeriodicDisturbance(Effect):
     order = 90
     no_term = ("clocked on time (clock: time): the model node's periodic term "
                "(angle_periodic) is phase-locked to an angle")
+
+    def reads_motion(self) -> bool:
+        """Unless clocked on time: the member's measured angle."""
+        return self.options.get("clock") != "time"
 
     def depends_on_angle(self) -> bool:
         """Unless clocked on time (``clock: time``)."""
@@ -116,7 +125,7 @@ class PeriodicDisturbance(Effect):
         if self.options.get("clock") == "time":
             return np.asarray(2.0 * math.pi * seg.dt * np.arange(seg.u.shape[0]))
         member = self.require_member() if stage == 0 else self._mesh_form(stage)
-        return angle_of(seg, member)[0]
+        return member_motion(seg, member, self.readout)[1]
 
     @staticmethod
     def _stage(p: Array) -> int:
@@ -155,7 +164,8 @@ class PeriodicDisturbance(Effect):
         spec = self.order_spectrum(ctx.member_residual(self.member), ctx.views[0])
         out: dict[str, object] = {"order_spectrum": spec}
         if self.options.get("clock") != "time":
-            out["angle_source"] = angle_of(ctx.views[0], self.require_member())[1]
+            out["angle_source"] = member_motion(ctx.views[0], self.require_member(),
+                                                self.readout)[2]
         return out, {}
 
     def order_spectrum(self, residual: Array, seg: SegmentView, n_grid: int = 200

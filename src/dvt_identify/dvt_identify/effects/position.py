@@ -65,6 +65,67 @@ def angle_of(seg: SegmentView, member: Array) -> tuple[Array, str]:
     return np.asarray(cumulative_trapezoid(s, dx=seg.dt, initial=0.0)), ANGLE_FROM_SPEED
 
 
+def motion_unreadable(member: Array, readout: Sequence[int]) -> str | None:
+    """Why a member's speed and angle cannot be read from the measured outputs of a structure
+    with hidden states (``readout``: the state each output reads, :attr:`Effect.readout`;
+    states ``(angles, speeds)`` of a mechanical structure), or ``None`` when they can: each
+    speed state of the member is measured itself or through its angle (a position sensor)."""
+    if not readout:
+        return None
+    n = member.size // 2
+    for i in np.flatnonzero(member):
+        if i < n:
+            return f"the member is given on angle state {i}, not on a speed"
+        if i not in readout and i - n not in readout:
+            return (f"neither speed state {i} nor its angle state {i - n} is measured (the "
+                    f"outputs read states {list(readout)})")
+    return None
+
+
+def member_motion(seg: SegmentView, member: Array, readout: Sequence[int] = ()
+                  ) -> tuple[Array, Array, str]:
+    """The member's measured speed ``c . v`` and angle ``c . theta`` over the segment, shape
+    (N,) each [speed unit, angle unit], and the angle's source.
+
+    Without ``readout`` (the outputs are the states) the speed is ``y @ member`` and the angle
+    :func:`angle_of`'s. With ``readout`` (:attr:`Effect.readout`: a mechanical structure with
+    hidden states, ``(angles, speeds)``) each speed state of the member is read from the output
+    that measures it, else from the output that measures its angle (the speed then by central
+    differences of the measured position); each angle from its position output, else the
+    recorded position or the integrated speed (:func:`angle_of` on the speed outputs).
+
+    Raises:
+        DescriptionError: the member cannot be read (:func:`motion_unreadable`).
+    """
+    if not readout:
+        theta, source = angle_of(seg, member)
+        return np.asarray(seg.y @ member, dtype=float), theta, source
+    why = motion_unreadable(member, readout)
+    if why is not None:
+        raise DescriptionError(f"member {list(member)}: its motion is not measured: {why}")
+    y = np.asarray(seg.y, dtype=float)
+    n = member.size // 2
+    w_speed, w_diff, w_angle, w_int = (np.zeros(y.shape[1]) for _ in range(4))
+    for i in np.flatnonzero(member):
+        c = float(member[i])
+        if i in readout:  # the speed is measured
+            w_speed[readout.index(i)] += c
+        else:  # through its position
+            w_diff[readout.index(i - n)] += c
+        if i - n in readout:  # the angle is measured
+            w_angle[readout.index(i - n)] += c
+        else:  # the recorded position of the speed's joint, or its integral
+            w_int[readout.index(i)] += c
+    speed = y @ w_speed
+    if np.any(w_diff):
+        speed = speed + np.gradient(y @ w_diff, seg.dt)
+    angle, source = y @ w_angle, ANGLE_FROM_POSITION
+    if np.any(w_int):
+        rest, source = angle_of(seg, w_int)
+        angle = angle + rest
+    return np.asarray(speed, dtype=float), np.asarray(angle, dtype=float), source
+
+
 def cell_mean_trig(theta: Array, order: float) -> tuple[Array, Array]:
     """Means of ``cos(k theta)`` and ``sin(k theta)`` over each step ``[theta_n, theta_n+1]``
     (the simulation holds a force over a step; the mean does not alias a fast ripple into a
@@ -97,6 +158,10 @@ class GravityLoad(Effect):
         """Always: the torque is a function of the member's angle."""
         return True
 
+    def reads_motion(self) -> bool:
+        """Always: the member's measured angle."""
+        return True
+
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
         """A ``gravity`` term: the same torque ``a cos(theta / N) + b sin(theta / N)`` on the
         member (the push sends it only when the angle was the measured position)."""
@@ -122,7 +187,7 @@ class GravityLoad(Effect):
                               f"candidate {self.label()}")
 
     def exogenous_force(self, p: Array, seg: SegmentView) -> Array | None:
-        theta, _ = angle_of(seg, self.require_member())
+        _, theta, _ = member_motion(seg, self.require_member(), self.readout)
         c, s = cell_mean_trig(theta, 1.0 / float(p[2]))
         return np.asarray(float(p[0]) * c + float(p[1]) * s)
 
@@ -162,7 +227,7 @@ class GravityLoad(Effect):
 
     def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
         """Which angle was used, and how far the output stage turned."""
-        theta, source = angle_of(ctx.views[0], self.require_member())
+        _, theta, source = member_motion(ctx.views[0], self.require_member(), self.readout)
         span = float(np.max(theta) - np.min(theta))
         return {"angle_source": source, "member_angle_span": span,
                 "reductions_scanned": self._reductions()}, {}
@@ -413,6 +478,10 @@ class Unlisted(Effect):
         """When a term has an angle factor (a library holds them, a proposal may not)."""
         return any(t.trig for t in self.terms)
 
+    def reads_motion(self) -> bool:
+        """Always: its terms are functions of the member's measured speed and angle."""
+        return True
+
     def model_terms(self, p: Array, outputs: Sequence[str]) -> list[Term] | None:
         """One ``library`` term per non-zero coefficient: ``k S(s) T(order theta) P(u)`` on the
         member, ``theta`` the member's angle or the term's mesh angle (field ``angle``), the
@@ -487,12 +556,11 @@ class Unlisted(Effect):
 
     def regressors(self, seg: SegmentView) -> Array:
         """Every term's value on the segment, shape (N, n_terms)."""
-        c = self.require_member()
-        s = seg.y @ c
-        thetas = {0: angle_of(seg, c)[0]}
+        s, theta, _ = member_motion(seg, self.require_member(), self.readout)
+        thetas = {0: theta}
         for t in self.terms:
             if t.mesh not in thetas:
-                thetas[t.mesh] = angle_of(seg, self.mesh_form(t.mesh))[0]
+                thetas[t.mesh] = member_motion(seg, self.mesh_form(t.mesh), self.readout)[1]
         return np.column_stack([t.evaluate(s, thetas[t.mesh], seg.u) for t in self.terms])
 
     def mesh_form(self, stage: int) -> Array:
@@ -542,6 +610,6 @@ class Unlisted(Effect):
 
     def scoring_evidence(self, ctx: ScoringContext) -> tuple[dict[str, object], dict[str, float]]:
         """The formula (start values), the member, the angle source."""
-        _, source = angle_of(ctx.views[0], self.require_member())
+        _, _, source = member_motion(ctx.views[0], self.require_member(), self.readout)
         return {"formula": self.formula([s.initial for s in self.params]),
                 "member": self.member_name, "angle_source": source}, {}
