@@ -129,9 +129,9 @@ def test_the_spread_over_parts_of_the_estimation_record_is_measured(
     in sample under a millimetre and better than the whole record is by its parameters, the fit
     on the whole record scores on the whole record what it scored in sample (the same protocol on
     the same samples), and the test figures' range is the rows' range. The linear reference
-    fitted on each part alone stands beside each row (measured 2026-12-06: 4.85 mm on the whole
-    record against the physical model's 6.25; the physical model better on five of the eight
-    parts)."""
+    fitted on each part alone stands beside each row (measured 2026-12-06 with the travel
+    polynomials: 4.85 mm on the whole record against the physical model's 2.42; the physical
+    model better on six of the eight parts; before them 4.85 against 6.25, five of eight)."""
     sp = emps["bench"]["part_fits"]
     names = [r["part"] for r in sp["rows"]]
     assert names == ["first 70 % (the tool's fit)", "whole record", "first half", "second half",
@@ -158,7 +158,7 @@ def test_the_report_prints_the_test_figure_s_spread_beside_it(emps: dict[str, An
     final model refitted on each half of its estimation data (the first 70 % of the record),
     scored like the test figure. Its final row is the test figure itself; on these records
     each half's refit scores worse on the test record than the whole fit (measured 2026-12-06:
-    7.07 and 12.16 mm against 4.56). The linear reference, refined on the same halves and
+    6.01 and 14.59 mm against 3.37). The linear reference, refined on the same halves and
     scored like its own test figure, spreads wider (7.63 and 16.38 mm against 5.27): the
     fragility is the records', and the physical model's largest figure is the smaller one
     (docs: dvt_identify.spread, examples/emps/README.md)."""

@@ -54,6 +54,7 @@ from numpy.typing import NDArray
 from dvt_identify.benchmarks import fit_for_output, protocol_score_model
 from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import load_description
+from dvt_identify.effects import Unlisted
 from dvt_identify.errors import DvtIdentifyError
 from dvt_identify.reference import LinearReference
 from dvt_identify.simulation import OEModel
@@ -91,14 +92,17 @@ def tool_model(report: dict[str, Any], exact_sign: bool = False) -> tuple[OEMode
     desc = load_description(report["description"]["source"].split(" ")[0])
     accepted = [e for e in report["effects"] if e.get("accepted") and e["name"] != "none"]
     cands = {c.label(): c for c in desc.make_candidates()}
+    values = report["final"]["parameters"]
     effects = []
     for e in accepted:
         c = cands[f"{e['name']}@{e['where']}"]
+        if isinstance(c, Unlisted):  # the accepted terms of the library (named as in it)
+            idx = [i for i, p in enumerate(c.params) if p.name in values]
+            c = c.subset(idx, np.array([float(values[c.params[i].name]) for i in idx]))
         if exact_sign and "eps" in c.options:
             c.options["eps"] = 0.0
         effects.append(c)
     model = OEModel(desc.structure, effects)
-    values = report["final"]["parameters"]
     return model, np.array([float(values[n]) for n in model.names])
 
 

@@ -6,6 +6,7 @@ numpy shape error in the middle of the loop."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -16,7 +17,13 @@ from dvt_identify.data import Segment, make_segment
 from dvt_identify.description import Description, parse_description
 from dvt_identify.effects import Unlisted
 from dvt_identify.effects.base import SegmentView
-from dvt_identify.effects.position import ANGLE_FROM_POSITION, ANGLE_FROM_SPEED, member_motion
+from dvt_identify.effects.position import (
+    ANGLE_FROM_POSITION,
+    ANGLE_FROM_SPEED,
+    POLY,
+    legendre_of_travel,
+    member_motion,
+)
 from dvt_identify.errors import DescriptionError
 from dvt_identify.fit import OEFit
 from dvt_identify.simulation import OEModel
@@ -107,11 +114,13 @@ def test_a_speed_output_of_a_structure_with_angles_integrates_the_angle() -> Non
     assert two_mass([{"effect": "coulomb_friction", "where": "load"}]).make_candidates()
 
 
-def simulate_cart(seed: int, amplitude: float, noise: float = 2e-5) -> Segment:
-    """``2 v' = F - 5 v - amplitude sin(ORDER q)`` (a force that depends on where the cart
-    is: a cogging or a cable, no named candidate), simulated by the identifier's own model (the
-    position force iterated to its fixed point as an input), the position measured with white
-    noise [m]; a filtered random force moves the cart over about three periods."""
+def simulate_cart(seed: int, amplitude: float, noise: float = 2e-5,
+                  force: Callable[[float, float], float] | None = None) -> Segment:
+    """``2 v' = F - 5 v - g(q)`` with ``g = amplitude sin(ORDER q)`` (a force that depends on
+    where the cart is: a cogging or a cable, no named candidate) simulated by the identifier's
+    own model (the position force iterated to its fixed point as an input), or ``- force(q,
+    v)`` by fine exact steps (:func:`_fine_cart`); the position measured with white noise [m];
+    a filtered random force moves the cart over about three periods."""
     rng = np.random.default_rng(seed)
     t = np.arange(N) * DT
     sos = signal.butter(2, 2.0, fs=1 / DT, output="sos")
@@ -119,12 +128,32 @@ def simulate_cart(seed: int, amplitude: float, noise: float = 2e-5) -> Segment:
     model = OEModel(cart([]).structure, [])
     theta, x0 = np.array([2.0, 5.0]), np.zeros(2)
     y = np.zeros((N, 1))
-    for _ in range(12 if amplitude else 1):
+    if force is not None:
+        y = _fine_cart(f, force)
+    for _ in range(12 if amplitude else 1 if force is None else 0):
         extra = amplitude * np.sin(ORDER * y[:, 0])
         y = model.simulate(theta, make_segment("c", t, f - extra, y, ["force"],
                                                ["position"]), x0)
     y = y + noise * rng.normal(size=y.shape)
     return make_segment(f"cart{seed}", t, f, y, ["force"], ["position"])
+
+
+def _fine_cart(f: np.ndarray, force: Callable[[float, float], float]) -> np.ndarray:
+    """``2 v' = f - 5 v - force(q, v)`` from rest, each sample's ``f`` held, 20 exact steps
+    of the linear part per sample with ``force`` held over each; positions (N, 1)."""
+    from scipy.linalg import expm
+
+    h = DT / 20
+    a = np.array([[0.0, 1.0], [0.0, -2.5]])
+    big = expm(np.block([[a, np.array([[0.0], [0.5]])], [np.zeros((1, 3))]]) * h)
+    ad, bd = big[:2, :2], big[:2, 2]
+    x = np.zeros(2)
+    q = np.zeros(f.size)
+    for i in range(f.size):
+        q[i] = x[0]
+        for _ in range(20):
+            x = ad @ x + bd * (f[i] - force(float(x[0]), float(x[1])))
+    return q[:, None]
 
 
 def test_unlisted_finds_a_position_force_from_a_position_sensor() -> None:
@@ -147,5 +176,68 @@ def test_unlisted_finds_a_position_force_from_a_position_sensor() -> None:
         eff.label()
     assert sc.p_value < 1e-6
     clean = simulate_cart(2, amplitude=0.0)
+    fit0 = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([clean])
+    assert search_unlisted(fit0, [clean], [lib]) is None
+
+
+def test_travel_polynomials_build_evaluate_and_refuse_bad_options() -> None:
+    """``travel: [lo, hi]`` adds ``P_j(x)`` and ``sign(s) P_j(x)``, ``j = 1..degree``, on the
+    position normalised to [-1, 1] over the travel (and no periodic terms unless ``orders`` is
+    given); the formula says what ``x`` is; the model node has no such factor, so a proposal
+    with one is reported as not pushable; a bad travel or degree is refused naming both."""
+    desc = cart([{"effect": "unlisted", "where": "cart", "inputs": [], "travel": [0.5, 1.5],
+                  "degree": 3}])
+    lib = desc.make_candidates()[0]
+    assert isinstance(lib, Unlisted)
+    poly = [t for t in lib.terms if t.trig == POLY]
+    assert sorted((t.speed, t.order) for t in poly) == sorted(
+        (sp, float(j)) for sp in ("", "sign") for j in (1, 2, 3))
+    assert not any(t.trig in ("cos", "sin") for t in lib.terms)
+    q = np.linspace(0.5, 1.5, 101)
+    x = 2 * q - 2.0
+    np.testing.assert_allclose(legendre_of_travel(q, 2, (0.5, 1.5)), 1.5 * x ** 2 - 0.5)
+    p3 = next(t for t in poly if t.order == 3 and t.speed == "sign")
+    w = np.where(np.arange(101) < 50, 1.0, -1.0)
+    np.testing.assert_allclose(p3.evaluate(w, q, np.zeros((101, 1))),
+                               w * (2.5 * x ** 3 - 1.5 * x), atol=1e-12)
+    prop = lib.subset([lib.terms.index(p3)], np.array([2.0]))
+    assert "sign(w_cart)*P3(x_cart)" in prop.formula([2.0])
+    assert "x_cart = (2*th_cart - (0.5) - (1.5)) / (1)" in prop.formula([2.0])
+    assert prop.model_terms(np.array([2.0]), ["position"]) is None
+    assert "polynomial" in prop.why_no_term(["position"])
+    for bad, needle in (({"travel": [1.0, 1.0]}, "travel: expected [lo, hi] with lo < hi"),
+                        ({"travel": [0.0]}, "travel"),
+                        ({"travel": [0.0, 1.0], "degree": 9}, "degree: expected an integer"),
+                        ({"travel": [0.0, 1.0], "degree": 2.5}, "degree")):
+        with pytest.raises(DescriptionError, match="unlisted@cart") as err:
+            cart([{"effect": "unlisted", "where": "cart", "inputs": [], **bad}]
+                 ).make_candidates()
+        assert needle in str(err.value), err.value
+
+
+def test_unlisted_finds_a_friction_that_grows_along_the_travel() -> None:
+    """A cart whose friction grows along its travel and has no period (a ball screw's preload
+    or a seal: ``2 P1(x) sign(v)``, smoothed over 0.01 m/s, travel [-1, 2] m) is found by the
+    travel polynomials as ``sign(w) P1(x)`` with a coefficient within 30 % of the truth's
+    ``-2 N`` (``tau`` acts along the motion); the same cart without it gets no proposal."""
+    span = (-1.0, 2.0)
+    desc = cart([{"effect": "unlisted", "where": "cart", "inputs": [], "travel": list(span)}])
+    lib = desc.make_candidates()[0]
+    assert isinstance(lib, Unlisted)
+
+    def friction(q: float, v: float) -> float:
+        x = (2 * q - span[0] - span[1]) / (span[1] - span[0])
+        return float(np.tanh(v / 0.01) * 2.0 * x)
+
+    seg = simulate_cart(3, amplitude=0.0, force=friction)
+    fit = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([seg])
+    sc = search_unlisted(fit, [seg], [lib])
+    assert sc is not None and sc.p_value < 1e-6
+    eff = sc.effect
+    assert isinstance(eff, Unlisted)
+    k = {(t.speed, t.trig, t.order): s.initial for t, s in zip(eff.terms, eff.params,
+                                                                 strict=True)}
+    assert -2.6 < k.get(("sign", POLY, 1.0), 0.0) < -1.4, eff.label()
+    clean = simulate_cart(4, amplitude=0.0)
     fit0 = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([clean])
     assert search_unlisted(fit0, [clean], [lib]) is None

@@ -257,6 +257,27 @@ def _unit_power(unit: str, n: int, bracket: bool) -> str:
     return unit if n == 1 else f"{unit}^{n}"
 
 
+POLY = "poly"
+"""A library term's position factor that is a Legendre polynomial of the position over the
+member's travel (:attr:`LibTerm.span`), not a periodic one: a linear axis or a joint with end
+stops, whose position-dependent force (a cable carrier, a preload that varies along a ball
+screw, a seal) has no period."""
+MAX_DEGREE = 8
+"""Highest degree of the travel polynomials (option ``degree``)."""
+
+
+def legendre_of_travel(theta: Array, degree: int, span: tuple[float, float]) -> Array:
+    """``P_degree(x)``, ``x = (2 theta - lo - hi) / (hi - lo)`` for ``span = (lo, hi)``, shape
+    of ``theta`` (outside the travel the polynomial is extrapolated)."""
+    from numpy.polynomial import legendre
+
+    lo, hi = span
+    x = (2.0 * np.asarray(theta, dtype=float) - lo - hi) / (hi - lo)
+    coef = np.zeros(degree + 1)
+    coef[degree] = 1.0
+    return np.asarray(legendre.legval(x, coef), dtype=float)
+
+
 @dataclass(frozen=True)
 class LibTerm:
     """One library term ``S(s) T(k theta) P(u_i)`` on a member.
@@ -270,6 +291,9 @@ class LibTerm:
             theta_carrier_k`` (:class:`MeshStage`, ``order`` its sun teeth).
         power: the input factor ``P(u)``, one of :data:`INPUT_POWERS` (``""``: ``u``; ignored
             without an input).
+        span: ``(lo, hi)`` of the member's travel [angle unit] for ``trig`` ``"poly"``: the
+            factor is then the Legendre polynomial of degree ``order`` of the position
+            normalised to ``x = (2 theta - lo - hi) / (hi - lo)`` (``[-1, 1]`` over the travel).
     """
 
     speed: str = ""
@@ -278,12 +302,15 @@ class LibTerm:
     input: int = -1
     mesh: int = 0
     power: str = ""
+    span: tuple[float, float] = (0.0, 0.0)
 
     def key(self, input_names: Sequence[str]) -> str:
         """A short parameter-name stem (``sgn_cos1``, ``sgn_u_motor``, ``u_motor_absq``,
         ``w_u_motor``, ...)."""
         parts = [_SPEED_KEY[self.speed]] if self.speed else []
-        if self.trig:
+        if self.trig == POLY:
+            parts.append(f"P{self.order:g}")
+        elif self.trig:
             parts.append(f"{self.trig}{self.order:g}".replace(".", "p"))
             if self.mesh:
                 parts.append(f"mesh{self.mesh}")
@@ -306,7 +333,9 @@ class LibTerm:
             out = s.copy()
         elif self.speed == "abs":
             out = np.abs(s)
-        if self.trig:
+        if self.trig == POLY:
+            out = out * legendre_of_travel(theta, round(self.order), self.span)
+        elif self.trig:
             c, sn = cell_mean_trig(theta, self.order)
             out = out * (c if self.trig == "cos" else sn)
         if self.input >= 0:
@@ -321,7 +350,9 @@ class LibTerm:
         w = f"w_{member}"
         f = {"sign": [f"sign({w})"], "abs_sq": [f"|{w}|*{w}"], "cube": [f"{w}^3"],
              "lin": [w], "abs": [f"|{w}|"], "": []}[self.speed]
-        if self.trig:
+        if self.trig == POLY:
+            f.append(f"P{self.order:g}(x_{member})")
+        elif self.trig:
             angle = f"mesh{self.mesh}" if self.mesh else member
             f.append(f"{self.trig}({self.order:g}*th_{angle})")
         if self.input >= 0:
@@ -340,19 +371,27 @@ class LibTerm:
 
 
 def default_library(orders: Sequence[float], inputs: Sequence[int],
-                    mesh: Sequence[tuple[int, float]] = ()) -> tuple[LibTerm, ...]:
+                    mesh: Sequence[tuple[int, float]] = (),
+                    travel: tuple[float, float] | None = None, degree: int = 4
+                    ) -> tuple[LibTerm, ...]:
     """The generic library on one member: ``sign(s)``, ``|s| s``, ``s^3``; ``cos/sin(k theta)``
     and ``sign(s) cos/sin(k theta)`` for each order; and for each listed input ``u_i`` the
     actuator-map terms: ``u_i sign(s)``, ``u_i s``, ``u_i |s|`` (a gain that depends on the
     speed), ``|u_i| u_i``, ``u_i^3`` (a torque constant that saturates or stiffens) and ``u_i
     cos/sin(k theta)`` (a gain that depends on the angle). Each ``(stage, teeth)`` of ``mesh``
-    adds the same angle terms on that stage's mesh angle at order ``teeth``."""
+    adds the same angle terms on that stage's mesh angle at order ``teeth``. With ``travel``
+    ``(lo, hi)``: ``P_j(x)`` and ``sign(s) P_j(x)`` for ``j = 1..degree`` (:data:`POLY`), a
+    force and a friction that depend on where the member is along its travel."""
     angles = [(float(k), 0) for k in orders] + [(float(z), int(st)) for st, z in mesh]
     out = [LibTerm("sign"), LibTerm("abs_sq"), LibTerm("cube")]
     for k, m in angles:
         for trig in ("cos", "sin"):
             out.append(LibTerm("", trig, k, mesh=m))
             out.append(LibTerm("sign", trig, k, mesh=m))
+    if travel is not None:
+        for j in range(1, degree + 1):
+            out.append(LibTerm("", POLY, float(j), span=travel))
+            out.append(LibTerm("sign", POLY, float(j), span=travel))
     for i in inputs:
         out.append(LibTerm("sign", "", 0.0, i))
         for k, m in angles:
@@ -361,6 +400,35 @@ def default_library(orders: Sequence[float], inputs: Sequence[int],
         out += [LibTerm("lin", input=i), LibTerm("abs", input=i),
                 LibTerm(input=i, power="abs_sq"), LibTerm(input=i, power="cube")]
     return tuple(out)
+
+
+def _travel(options: dict[str, object], what: str) -> tuple[float, float] | None:
+    """Option ``travel`` as ``(lo, hi)`` with ``lo < hi`` finite, or ``None`` when absent.
+
+    Raises:
+        DescriptionError: naming ``what``, the option and the value.
+    """
+    raw = options.get("travel")
+    if raw is None:
+        return None
+    vals = numbers_option(options, "travel", [], what)
+    if len(vals) != 2 or not all(math.isfinite(v) for v in vals) or not vals[0] < vals[1]:
+        raise DescriptionError(f"{what}: travel: expected [lo, hi] with lo < hi (the member's "
+                               f"travel in its angle unit), got {raw!r}")
+    return vals[0], vals[1]
+
+
+def _degree(options: dict[str, object], what: str) -> int:
+    """Option ``degree`` (of the travel polynomials): an integer 1..:data:`MAX_DEGREE`.
+
+    Raises:
+        DescriptionError: naming ``what`` and the value.
+    """
+    raw = options.get("degree", 4)
+    if isinstance(raw, bool) or not isinstance(raw, int) or not 1 <= raw <= MAX_DEGREE:
+        raise DescriptionError(f"{what}: degree: expected an integer from 1 to {MAX_DEGREE}, "
+                               f"got {raw!r}")
+    return raw
 
 
 def mesh_orders(params_name: str = "physical") -> list[float]:
@@ -463,7 +531,12 @@ class Unlisted(Effect):
     formula; ``mesh_speeds`` names the states of the sun and carrier-3 speeds, see
     :func:`mesh_members`), ``inputs`` (input names of the input-side terms: products with
     the speed and angle factors and the input's powers, :func:`default_library`; default the
-    first input; ``[]``: none), ``max_terms`` (the search's cap, default 3).
+    first input; ``[]``: none), ``max_terms`` (the search's cap, default 3), ``travel``
+    (``[lo, hi]`` [angle unit]: the member's travel, a linear axis or a joint between end
+    stops; adds Legendre polynomials of the position over it, plain and times ``sign(s)``,
+    :data:`POLY`; without ``orders`` the periodic angle terms are then left out) and
+    ``degree`` (of those polynomials, 1 to :data:`MAX_DEGREE`, default 4). The model node
+    has no polynomial factor: a proposal with one is identified and reported, not pushed.
 
     Attributes:
         mesh_forms: stage ``k``'s mesh-angle form over the states at index ``k - 1``
@@ -492,6 +565,8 @@ class Unlisted(Effect):
         for t, k in zip(self.terms, p, strict=True):
             if float(k) == 0.0:
                 continue
+            if t.trig == POLY:
+                return None  # the model node has no polynomial factor (why_no_term)
             term: Term = {"kind": "library", "member": self.member_list(), "k": float(k),
                           "speed": t.speed, "trig": t.trig,
                           "order": float(t.order) if t.trig else 0.0,
@@ -514,7 +589,9 @@ class Unlisted(Effect):
     def build(cls, ctx: BuildContext) -> Effect:
         ctx.state_index()
         what = f"candidate unlisted@{ctx.where}"
-        orders = numbers_option(ctx.options, "orders", [1.0, 2.0, 3.0], what)
+        travel = _travel(ctx.options, what)
+        orders = numbers_option(ctx.options, "orders",
+                                [] if travel is not None else [1.0, 2.0, 3.0], what)
         if ctx.options.get("mesh_orders"):
             orders += mesh_orders(str(ctx.options.get("params", "physical")))
         orders = list(dict.fromkeys(orders))
@@ -523,7 +600,8 @@ class Unlisted(Effect):
             raise DescriptionError(f"{what}: inputs: expected a list of input names")
         inputs = [ctx.input_index(str(n)) for n in raw_inputs]
         stages = mesh_members(ctx) if ctx.options.get("mesh_stages") else []
-        terms = default_library(orders, inputs, [(ms.stage, ms.teeth) for ms, _ in stages])
+        terms = default_library(orders, inputs, [(ms.stage, ms.teeth) for ms, _ in stages],
+                                travel, _degree(ctx.options, what))
         units = (ctx.force_unit, ctx.speed_unit, str(ctx.options.get("input_unit", "A")))
         eff = cls(where=ctx.where, member=ctx.member_vector(), options=dict(ctx.options),
                   terms=terms, input_names=ctx.input_names, member_name=ctx.where,
@@ -584,15 +662,29 @@ class Unlisted(Effect):
             return None
         return np.asarray(self.regressors(seg) @ np.asarray(p, float))
 
+    def why_no_term(self, outputs: Sequence[str]) -> str:
+        """A polynomial of the position (the node has none), else every coefficient 0."""
+        if any(t.trig == POLY for t in self.terms):
+            return ("a Legendre polynomial of the position over the travel: the model node has "
+                    "no such factor")
+        return self.no_term
+
     def formula(self, p: Sequence[float] | Array) -> str:
-        """``tau_<member> = k1 [unit]*term1 + ...`` in physical units (torque on the member)."""
+        """``tau_<member> = k1 [unit]*term1 + ...`` in physical units (torque on the member);
+        with a travel polynomial ``P_j(x_<member>)``, the normalised position
+        ``x = (2 theta - lo - hi) / (hi - lo)`` follows."""
         fu, sp, iu = self.units
         parts = []
         for t, v in zip(self.terms, p, strict=True):
             term = t.text(self.member_name, self.input_names)
             parts.append(f"{float(v):+.4g} {t.unit(fu, sp, iu)}*{term}")
         body = " ".join(parts) if parts else "0"
-        return f"tau_{self.member_name} = {body}".replace("= +", "= ")
+        out = f"tau_{self.member_name} = {body}".replace("= +", "= ")
+        spans = {t.span for t in self.terms if t.trig == POLY}
+        for lo, hi in sorted(spans):
+            out += (f"; x_{self.member_name} = (2*th_{self.member_name} - ({lo:g}) - ({hi:g})) "
+                    f"/ ({hi - lo:g}), P_j Legendre")
+        return out
 
     def label(self) -> str:
         """``unlisted@member`` for the library; with the formula (start values) for a
