@@ -4,7 +4,10 @@ A member's angle is ``theta = c . q`` with ``q`` the generalised angles. It is t
 segment's measured angles when the segment carries them (an ``angles`` attribute of shape
 (N, ny), from the recording's ``position``), else from integrating the measured member speed
 from 0 at the segment's first sample (:func:`angle_of` says which; the evidence reports it).
-With an integrated angle a phase is relative to the first sample.
+With an integrated angle a phase is relative to the first sample. On a structure with hidden
+states (sensors that read some of the states, :attr:`Effect.readout`) the member's speed and
+angle are read through the sensors (:func:`member_motion`: a measured position is the angle
+and its central difference the speed).
 
 - :class:`GravityLoad` (``gravity_load``): a torque ``a cos(theta / N) + b sin(theta / N)`` on
   the member (carrier 3: an arm behind an output stage of reduction ``N``), amplitude
@@ -12,7 +15,8 @@ With an integrated angle a phase is relative to the first sample.
   description option (``reduction``, held fixed) or scanned (``reductions``) and then fitted.
 - :class:`Unlisted` (``unlisted``): a sum of library terms ``sum_j k_j phi_j`` on one member,
   each ``phi_j = S(s) T(k theta) P(u_i)`` (speed factor ``sign(s)``, ``|s| s``, ``s^3``, ``s``,
-  ``|s|`` or 1, angle factor ``cos``/``sin`` of an order or 1, input factor ``u_i``, ``|u_i|
+  ``|s|`` or 1, angle factor ``cos``/``sin`` of an order, a Legendre polynomial of the
+  position over the member's travel (:data:`POLY`) or 1, input factor ``u_i``, ``|u_i|
   u_i``, ``u_i^3`` or 1). Built from a description entry it holds the whole library (the search
   :mod:`dvt_identify.unlisted` picks a few terms with :meth:`Unlisted.subset`); its label
   carries the formula in physical units.
@@ -20,7 +24,8 @@ With an integrated angle a phase is relative to the first sample.
 All are exogenous forces evaluated on the measured speeds and angles (like a periodic
 disturbance), so the simulation stays the compiled linear + dry-friction loop. Model node:
 a ``gravity`` term and one ``library`` term per coefficient (:mod:`dvt_model.terms`), pushed only
-when the angle was the measured position (:mod:`dvt_identify.push`).
+when the angle was the measured position (:mod:`dvt_identify.push`); a travel polynomial has
+no node term (reported, not pushed).
 """
 
 from __future__ import annotations
