@@ -124,42 +124,44 @@ def test_the_spread_over_parts_of_the_estimation_record_is_measured(
         emps: dict[str, Any]) -> None:
     """examples/emps/README.md's "the figure is fragile": the chosen structure fitted by the
     benchmark's criterion on the whole estimation record, its halves and its quarters (no
-    choice on the test record). Refitted on the first 70 %, where the tool fitted it, the tool's
-    model stays where it is (its test figure within 0.1 %). Each half and quarter is described
-    in sample under a millimetre and better than the whole record is by its parameters, the fit
-    on the whole record scores on the whole record what it scored in sample (the same protocol on
-    the same samples), and the test figures' range is the rows' range. The linear reference
-    fitted on each part alone stands beside each row (measured 2026-12-06 with the travel
-    polynomials: 4.85 mm on the whole record against the physical model's 2.42; the physical
-    model better on six of the eight parts; before them 4.85 against 6.25, five of eight)."""
+    choice on the test record). Refitted on the whole record, where the tool's final fit is
+    (the choice made with fits on the first 70 %, :func:`dvt_identify.loop.refit_whole`), the
+    benchmark's own criterion lands within 5 % of the tool's test figure (measured 2026-12-06:
+    2.49 against 2.44 mm). Each half and quarter is described in sample under a millimetre
+    and better than the whole record is by its parameters, the fit on the whole record scores
+    on the whole record what it scored in sample (the same protocol on the same samples), and
+    the test figures' range is the rows' range. The linear reference fitted on each part alone
+    stands beside each row; on the whole record it is the tool's own reference (measured: 4.85
+    mm; the physical model better on six of the eight parts)."""
     sp = emps["bench"]["part_fits"]
     names = [r["part"] for r in sp["rows"]]
-    assert names == ["first 70 % (the tool's fit)", "whole record", "first half", "second half",
+    assert names == ["first 70 % (where the tool's choice was fitted)",
+                     "whole record (the tool's final fit)", "first half", "second half",
                      "quarter 1", "quarter 2", "quarter 3", "quarter 4"], names
-    own, whole = sp["rows"][:2]
+    whole = sp["rows"][1]
     ours = next(r for r in emps["bench"]["rows"] if r["label"].startswith("dvt-identify, "))
-    assert own["test_rms_mm"] == pytest.approx(ours["test_rms_mm"], rel=1e-3), (own, ours)
+    assert whole["test_rms_mm"] == pytest.approx(ours["test_rms_mm"], rel=0.05), (whole, ours)
     assert whole["in_sample_rms_mm"] == pytest.approx(whole["est_rms_mm"], rel=1e-9), whole
     for r in sp["rows"][2:]:
         assert r["in_sample_rms_mm"] < 1.0, r
         assert r["in_sample_rms_mm"] < r["est_rms_mm"], r
     t = [r["test_rms_mm"] for r in sp["rows"]]
     assert (sp["test_min_mm"], sp["test_max_mm"]) == (min(t), max(t)), sp
-    # the linear reference fitted on the same parts (the tool's order); on the first 70 % it is
-    # the tool's own reference (the same fit on the same samples)
+    # the linear reference fitted on the same parts (the tool's order); on the whole record it
+    # is the tool's own reference (the same fit on the same samples)
     lin = [r["linear_test_rms_mm"] for r in sp["rows"]]
     ref = next(r for r in emps["bench"]["rows"] if "linear reference" in r["label"])
-    assert lin[0] == pytest.approx(ref["test_rms_mm"], rel=1e-3), (lin[0], ref)
+    assert lin[1] == pytest.approx(ref["test_rms_mm"], rel=1e-3), (lin[1], ref)
     assert sorted(sp["linear_better_on"] + sp["physical_better_on"]) == sorted(names)
 
 
 def test_the_report_prints_the_test_figure_s_spread_beside_it(emps: dict[str, Any]) -> None:
     """The tool's own spread (dvt_identify.spread), printed right after the test figure: the
-    final model refitted on each half of its estimation data (the first 70 % of the record),
-    scored like the test figure. Its final row is the test figure itself; on these records
-    each half's refit scores worse on the test record than the whole fit (measured 2026-12-06:
-    6.01 and 14.59 mm against 3.37). The linear reference, refined on the same halves and
-    scored like its own test figure, spreads wider (7.63 and 16.38 mm against 5.27): the
+    final model refitted on each half of its estimation data (the whole record), scored like
+    the test figure. Its final row is the test figure itself; on these records each half's
+    refit scores worse on the test record than the whole fit (measured 2026-12-06: 4.06 and
+    15.90 mm against 2.44). The linear reference, refined on the same halves and scored like
+    its own test figure, spreads wider (6.55 and 16.53 mm against 4.85): the
     fragility is the records', and the physical model's largest figure is the smaller one
     (docs: dvt_identify.spread, examples/emps/README.md)."""
     second = emps["stdout"].splitlines()[1]

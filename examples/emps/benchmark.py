@@ -206,7 +206,8 @@ def test_record_bound(model: OEModel, theta: Array, test: Segment, est: Segment
 
 
 PARTS: tuple[tuple[str, float, float], ...] = (
-    ("first 70 % (the tool's fit)", 0.0, 0.7), ("whole record", 0.0, 1.0),
+    ("first 70 % (where the tool's choice was fitted)", 0.0, 0.7),
+    ("whole record (the tool's final fit)", 0.0, 1.0),
     ("first half", 0.0, 0.5), ("second half", 0.5, 1.0),
     ("quarter 1", 0.0, 0.25), ("quarter 2", 0.25, 0.5), ("quarter 3", 0.5, 0.75),
     ("quarter 4", 0.75, 1.0))
@@ -237,9 +238,10 @@ def part_fits(model: OEModel, theta: Array, est: Segment, test: Segment,
     whole estimation record, its halves and its quarters (:data:`PARTS`), each scored on the
     part itself (in sample), on the whole estimation record and on the test record [mm]; with
     ``linear_order`` (the tool's reference's), the linear reference fitted on the same part
-    beside it (:func:`linear_part`). No choice uses the test record; the tool's own model is
-    fitted on the first 70 % (the last 30 % chooses the effects). Returns the rows and the test
-    figures' range."""
+    beside it (:func:`linear_part`). No choice uses the test record; the tool chooses the
+    effects with fits on the first 70 % (the last 30 % held out) and then refits the chosen
+    model on the whole record (:func:`dvt_identify.loop.refit_whole`). Returns the rows and
+    the test figures' range."""
     lo = np.array([s.lower for s in model.specs])
     hi = np.array([s.upper for s in model.specs])
     n = est.t.size

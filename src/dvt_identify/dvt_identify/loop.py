@@ -81,13 +81,21 @@ from dvt_identify.data import Segment
 from dvt_identify.description import Description
 from dvt_identify.drift import DriftReport, drift_check
 from dvt_identify.effects import Effect, SegmentView, Unlisted
+from dvt_identify.effects.dissipation import undissipative
 from dvt_identify.errors import DataError, FitError
 from dvt_identify.fit import OEFit, Progress
 from dvt_identify.fitrate import fit_segments
 from dvt_identify.identifiability import Identifiability
-from dvt_identify.linref import ReferenceStage, fit_reference, mapped_starts, unfolded_starts
+from dvt_identify.linref import (
+    ReferenceStage,
+    fit_reference,
+    mapped_starts,
+    reference_data,
+    unfolded_starts,
+)
 from dvt_identify.metrics import Figures
 from dvt_identify.parallel import fork_map
+from dvt_identify.reference import LinearReference
 from dvt_identify.resid import STRUCTURED_SHARE
 from dvt_identify.scoring import CandidateScore, score_candidates
 from dvt_identify.selection import (
@@ -134,6 +142,14 @@ explains 0.4-2.4 %; on the live loop's 2.5-s first refit after a friction step, 
 Coulomb steps are in, a spurious sun periodic term explains 10.5 %
 (``test_supervisor_refit.py::test_first_refit_names_both_coulomb_steps_on_a_few_seconds``),
 which 0.10 let through: 0.15 sits between that and the ripple's 25 %)."""
+
+
+UNDISSIPATIVE_NOTE = ("a truncated series of a friction that is >= 0 everywhere undershoots "
+                      "below 0 beside a narrow peak, so a refit is not refused for it; "
+                      "read the law as an approximation there, or as a sign that the "
+                      "friction under it is missing")
+"""Why a final model whose dry frictions fall below 0 is flagged, not refused
+(:mod:`dvt_identify.effects.dissipation`)."""
 
 
 def _seg_losses(fit: OEFit, segments: Sequence[Segment]) -> tuple[Array, int, int]:
@@ -408,6 +424,10 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                          "doubled): " + ", ".join(
                              f"{stage.fit.model.names[j]} {stage.fit.landing_spread_[j]:.3g}"
                              for j in stage.fit.model.chaotic_parameters()))
+    for why in undissipative(current.fit.model.effects,
+                             current.fit.model.effect_params(current.fit.theta_), fit_segs):
+        notes.append(f"physics: {why} (flagged, not refused: {UNDISSIPATIVE_NOTE})")
+        say(notes[-1])
     return IdentificationResult(
         description=desc, estimation_bags=[s.name for s in est],
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,
@@ -695,3 +715,75 @@ def _recheck(current: Stage, kept: Sequence[Decision], fit_segs: Sequence[Segmen
         say(notes[-1])
         current = stage
     return current
+
+
+def refit_whole(result: IdentificationResult, whole: Sequence[Segment],
+                say: Progress | None = None) -> IdentificationResult:
+    """After a choice on the held-out end of each estimation segment (``--select-on
+    holdout``, ``result`` from :func:`identify` on the first parts, ``whole`` the segments
+    they were cut from): the baseline and the final model refitted on the whole segments
+    from their optimum, as the cross-validated selection fits its final model on all of its
+    data (scikit-learn's ``refit``: the held-out part chose the effects; once chosen, it is
+    estimation data). The choices are unchanged, and so are the selection figures: each
+    stage's validation figures are the held-out part simulated by its fit on the first part
+    (one fold, :func:`make_stage` ``folds``); its parameters, uncertainties and estimation
+    figures are the refit's. The linear reference is refitted likewise at its chosen order.
+    A refit that fails, or leaves an effect inadmissible (:func:`inadmissible_effects`), keeps
+    that stage's first-part fit, with a note. Measured on the EMPS estimation record cut at
+    70 % (the procedure run on its first part, scored on its last 30 %, no test record): 5.17
+    mm fitted on the first part, 4.63 mm refitted on all of it."""
+    say = say or (lambda _m: None)
+    cfg = result.config
+    held = list(result.val_segments)
+    base = result.baseline.fit.model
+    fit_segs, _ = fit_segments(whole, base, 1 if cfg.init_window > 0 else cfg.fit_decimate)
+    same_rate = all(f is s for f, s in zip(fit_segs, whole, strict=True))
+    fold = list(range(len(held)))
+    stages: list[Stage] = []
+    for stage in (result.baseline, result.final):
+        if stages and stage is result.baseline:  # nothing was accepted: one stage
+            stages.append(stages[0])
+            continue
+        first = stage.fit
+        try:
+            fit = OEFit(first.model, theta0=first.theta_, more_starts=0, physics_start=False,
+                        weights=first.weights_, max_nfev=first.max_nfev, progress=say,
+                        init_window=cfg.init_window).fit(fit_segs)
+            bad = inadmissible_effects(fit, fit_segs)
+            if bad:
+                raise FitError("inadmissible there: " + "; ".join(bad))
+            fit.add_landing_spread(fit.segments_)
+            new = make_stage(stage.label, fit, whole, held, same_rate, cfg.lags,
+                             ([first], [fold]))
+        except FitError as exc:
+            result.notes.append(f"{stage.label}: not refitted on the whole estimation "
+                                f"segments ({exc}); its parameters are those fitted on their "
+                                "first part")
+            say(result.notes[-1])
+            new = stage
+        stages.append(new)
+    whole_text = ", ".join(f"{s.name} ({s.n} samples)" for s in whole)
+    result.notes.append(
+        f"parameters refitted on the whole estimation segments ({whole_text}) after the "
+        "choice, from the optimum on their first part: the held-out part chose the effects "
+        "and gives the selection figures (simulated by the fit without it); the parameters, "
+        "their uncertainty and the estimation and test figures are the refit's")
+    say(result.notes[-1])
+    result.baseline, result.final = stages[0], stages[-1]
+    result.est_segments = list(whole)
+    result.estimation_bags = [s.name for s in whole]
+    result.whole = True
+    ref = result.reference
+    if ref is not None:
+        try:
+            again = LinearReference(max_order=ref.model.order_, init_window=cfg.init_window,
+                                    seed=cfg.seed).fit(reference_data(fit_segs, cfg.init_window),
+                                                       held)
+            ref.model = again
+            ref.chosen_on = (f"{ref.chosen_on}; refitted at that order on the whole estimation "
+                             "segments (its validation figures: fitted without the held-out "
+                             "part)")
+        except (FitError, DataError) as exc:
+            result.notes.append(f"linear reference not refitted on the whole estimation "
+                                f"segments ({exc}): fitted on their first part")
+    return result

@@ -28,7 +28,7 @@ from dvt_identify.description import Description, load_description
 from dvt_identify.errors import DataError, DvtIdentifyError
 from dvt_identify.fit import Progress, stderr_progress
 from dvt_identify.fitrate import model_time_scales, resolves_intersample
-from dvt_identify.loop import IdentificationResult, LoopConfig, identify
+from dvt_identify.loop import IdentificationResult, LoopConfig, identify, refit_whole
 from dvt_identify.push import Push, model_node_parameters
 from dvt_identify.report import write_report
 from dvt_identify.simulation import OEModel
@@ -234,7 +234,7 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
         fit_part, held = series_mod.holdout_split(est)
         say(f"selection on the held-out last {100 * series_mod.HOLDOUT_FRACTION:g} % of each "
             "estimation segment")
-        result = identify(fit_part, held, desc, cfg, say, check=chk)
+        result = refit_whole(identify(fit_part, held, desc, cfg, say, check=chk), est, say)
     elif select_on == "cv":
         if len({bag_of(s.name) for s in est}) < CV_MIN_BAGS:
             # one record: the folds are contiguous blocks of it (cross-validation over segments)
@@ -263,7 +263,7 @@ def run(est_bags: Sequence[str | Path], val_bags: Sequence[str | Path], out_dir:
             from dvt_identify.disagree import compare_records
 
             result.agreement = compare_records(
-                result.final.fit, [*result.est_segments, *result.val_segments], test,
+                result.final.fit, result.records(), test,
                 desc.structure.force_unit)
             say(result.agreement.statement)
         except DvtIdentifyError as exc:
@@ -301,7 +301,7 @@ def _offer_carrier(result: IdentificationResult, test: Sequence[Segment], init_w
 
     try:
         result.carrier = offer_carrier(
-            result.final.fit, [*result.est_segments, *result.val_segments], test, init_window,
+            result.final.fit, result.records(), test, init_window,
             result.test.final, unit)
         say(result.carrier.statement)
     except DvtIdentifyError as exc:

@@ -115,7 +115,9 @@ class Stage:
         spectrum_val: residual spectrum of each output on validation data.
         folds: with cross-validated selection, the model refitted without each estimation
             bag in turn (:func:`cv_folds` order); its ``val_pred`` are their out-of-sample
-            simulations of the left-out bags. Empty otherwise.
+            simulations of the left-out bags. After a holdout choice refitted on the whole
+            segments (:func:`dvt_identify.loop.refit_whole`): the one fit on their first
+            parts, which simulated the held-out ends. Empty otherwise.
     """
 
     label: str
@@ -224,6 +226,10 @@ class IdentificationResult:
     drift: DriftReport | None = None
     data_warnings: list[str] = field(default_factory=list)
     est_segments: list[Segment] = field(default_factory=list)
+    whole: bool = False
+    """The parameters were refitted on the whole estimation segments after a choice on their
+    held-out ends (:func:`dvt_identify.loop.refit_whole`): ``est_segments`` are the whole
+    segments, ``val_segments`` their held-out ends (in them)."""
     test: Any = None
     """Figures on test data read after every choice (:class:`dvt_identify.series.TestFigures`)."""
     reference: ReferenceStage | None = None
@@ -241,6 +247,12 @@ class IdentificationResult:
     """Which data chose the effects: ``validation`` (the validation bags), ``holdout`` (the
     held-out end of each estimation segment) or ``cv`` (leave-one-bag-out cross-validation
     across the estimation bags; the validation figures are then out-of-fold)."""
+
+    def records(self) -> list[Segment]:
+        """The estimation data as recorded, each sample once: the whole segments after
+        :func:`~dvt_identify.loop.refit_whole`, else the estimation and validation segments."""
+        return list(self.est_segments) if self.whole else [*self.est_segments,
+                                                            *self.val_segments]
 
     @property
     def accepted(self) -> list[Decision]:

@@ -3,7 +3,8 @@
 
 The toy is a cart ``M v' = F - Fv v`` (M 2.5 kg, Fv 4 N s/m) under random force steps, its speed
 read with 1 % noise and an optional constant sensor offset, described with one candidate,
-``sensor_offset``.
+``sensor_offset``. A second cart runs on a linear axis with its position measured and its speed
+hidden (``axis_desc``, ``axis_record``: the EMPS benchmark's kind of output).
 """
 
 from __future__ import annotations
@@ -65,6 +66,91 @@ def _cart_record(desc: Description, name: str, seed: int, n: int = 1500, offset:
     y = OEModel(desc.structure).simulate(np.array([2.5, 4.0]), clean, np.zeros(1))
     y = y + offset + 0.01 * rng.standard_normal(y.shape)
     return make_segment(name, t, u, y, desc.input_names, desc.output_names)
+
+
+# -- a cart on a linear axis, its position measured (the EMPS benchmark's kind of output) ----
+
+AXIS_DT = 0.002  # [s]
+AXIS_N = 5000
+
+
+def _axis_desc(candidates: Sequence[dict[str, Any]],
+               model_effects: Sequence[dict[str, Any]] = ()) -> Description:
+    """A cart on a linear axis, its position measured, its speed hidden:
+    ``q' = v, M v' = F - Fv v + effects``, ``y = q`` [m]; ``model_effects`` declared."""
+    return parse_description({
+        "name": "cart",
+        "inputs": [{"name": "force", "topic": "/c/drive", "field": "effort", "joint": "x"}],
+        "outputs": [{"name": "position", "topic": "/c/joint_states", "field": "position",
+                     "joint": "x"}],
+        "structure": {"type": "mechanical", "members": ["cart"], "mass": [["M"]],
+                      "damping": [["Fv"]], "stiffness": [[0.0]], "input_matrix": [[1.0]],
+                      "outputs": {"position": "cart_angle"}, "force_unit": "N",
+                      "speed_unit": "m/s", "angle_unit": "m",
+                      "parameters": {"M": {"initial": 1.0, "lower": 0.001},
+                                     "Fv": {"initial": 1.0, "lower": 0.0}}},
+        "model_effects": list(model_effects),
+        "candidates": list(candidates),
+        "fit": {"starts": 1, "refit_starts": 1},
+    }, "test")
+
+
+def _axis_record(seed: int, amplitude: float = 0.0, noise: float = 2e-5,
+                 force: Callable[[float, float], float] | None = None,
+                 order: float = 4 * np.pi) -> Segment:
+    """``2 v' = F - 5 v - g(q)`` with ``g = amplitude sin(order q)`` [N] (a force that depends
+    on where the cart is: a cogging or a cable, no named candidate) simulated by the
+    identifier's own model (the position force iterated to its fixed point as an input), or
+    ``- force(q, v)`` by fine exact steps (:func:`_fine_axis`); the position measured with
+    white noise [m]; a filtered random force moves the cart over about 1.5 m."""
+    from scipy import signal
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(AXIS_N) * AXIS_DT
+    sos = signal.butter(2, 2.0, fs=1 / AXIS_DT, output="sos")
+    f = (8 * np.sin(2 * np.pi * 0.2 * t + seed)
+         + 6 * signal.sosfilt(sos, rng.normal(size=AXIS_N)))
+    model = OEModel(_axis_desc([]).structure, [])
+    theta, x0 = np.array([2.0, 5.0]), np.zeros(2)
+    y = np.zeros((AXIS_N, 1))
+    if force is not None:
+        y = _fine_axis(f, force)
+    for _ in range(12 if amplitude else 1 if force is None else 0):
+        extra = amplitude * np.sin(order * y[:, 0])
+        y = model.simulate(theta, make_segment("c", t, f - extra, y, ["force"],
+                                               ["position"]), x0)
+    y = y + noise * rng.normal(size=y.shape)
+    return make_segment(f"cart{seed}", t, f, y, ["force"], ["position"])
+
+
+def _fine_axis(f: np.ndarray, force: Callable[[float, float], float]) -> np.ndarray:
+    """``2 v' = f - 5 v - force(q, v)`` from rest, each sample's ``f`` held, 20 exact steps
+    of the linear part per sample with ``force`` held over each; positions (N, 1)."""
+    from scipy.linalg import expm
+
+    h = AXIS_DT / 20
+    a = np.array([[0.0, 1.0], [0.0, -2.5]])
+    big = expm(np.block([[a, np.array([[0.0], [0.5]])], [np.zeros((1, 3))]]) * h)
+    ad, bd = big[:2, :2], big[:2, 2]
+    x = np.zeros(2)
+    q = np.zeros(f.size)
+    for i in range(f.size):
+        q[i] = x[0]
+        for _ in range(20):
+            x = ad @ x + bd * (f[i] - force(float(x[0]), float(x[1])))
+    return q[:, None]
+
+
+@pytest.fixture(scope="session")
+def axis_desc() -> Callable[..., Description]:
+    """:func:`_axis_desc`: the position-measured cart's description."""
+    return _axis_desc
+
+
+@pytest.fixture(scope="session")
+def axis_record() -> Callable[..., Segment]:
+    """:func:`_axis_record`: a record of the position-measured cart."""
+    return _axis_record
 
 
 @pytest.fixture(scope="session")

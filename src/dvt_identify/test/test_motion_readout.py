@@ -11,9 +11,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from scipy import signal
 
-from dvt_identify.data import Segment, make_segment
+from dvt_identify.data import Segment
 from dvt_identify.description import Description, parse_description
 from dvt_identify.effects import Unlisted
 from dvt_identify.effects.base import SegmentView
@@ -30,28 +29,8 @@ from dvt_identify.simulation import OEModel
 from dvt_identify.unlisted import search_unlisted
 
 DT = 0.002
-N = 5000
 PERIOD = 0.5  # [m] the spatial period of the cart's position-dependent force
 ORDER = 2 * np.pi / PERIOD  # [rad/m]
-
-
-def cart(candidates: list[dict[str, Any]]) -> Description:
-    """A cart on a linear axis, its position measured, its speed hidden:
-    ``q' = v, M v' = F - Fv v + effects``, ``y = q`` [m]."""
-    return parse_description({
-        "name": "cart",
-        "inputs": [{"name": "force", "topic": "/c/drive", "field": "effort", "joint": "x"}],
-        "outputs": [{"name": "position", "topic": "/c/joint_states", "field": "position",
-                     "joint": "x"}],
-        "structure": {"type": "mechanical", "members": ["cart"], "mass": [["M"]],
-                      "damping": [["Fv"]], "stiffness": [[0.0]], "input_matrix": [[1.0]],
-                      "outputs": {"position": "cart_angle"}, "force_unit": "N",
-                      "speed_unit": "m/s", "angle_unit": "m",
-                      "parameters": {"M": {"initial": 1.0, "lower": 0.001},
-                                     "Fv": {"initial": 1.0, "lower": 0.0}}},
-        "candidates": candidates,
-        "fit": {"starts": 1, "refit_starts": 1},
-    }, "test")
 
 
 def two_mass(candidates: list[dict[str, Any]]) -> Description:
@@ -77,10 +56,11 @@ def view(y: np.ndarray, dt: float = DT) -> SegmentView:
     return SegmentView(dt, np.zeros((y.shape[0], 1)), y, None)
 
 
-def test_a_position_output_gives_the_member_its_speed_and_angle() -> None:
+def test_a_position_output_gives_the_member_its_speed_and_angle(
+        axis_desc: Callable[..., Description]) -> None:
     """The member's angle is the measured position, its speed the position's central
     difference (exact for a parabola)."""
-    desc = cart([{"effect": "unlisted", "where": "cart", "inputs": []}])
+    desc = axis_desc([{"effect": "unlisted", "where": "cart", "inputs": []}])
     lib = desc.make_candidates()[0]
     assert isinstance(lib, Unlisted) and lib.readout == (0,)  # position reads cart_angle
     t = np.arange(200) * DT
@@ -114,57 +94,17 @@ def test_a_speed_output_of_a_structure_with_angles_integrates_the_angle() -> Non
     assert two_mass([{"effect": "coulomb_friction", "where": "load"}]).make_candidates()
 
 
-def simulate_cart(seed: int, amplitude: float, noise: float = 2e-5,
-                  force: Callable[[float, float], float] | None = None) -> Segment:
-    """``2 v' = F - 5 v - g(q)`` with ``g = amplitude sin(ORDER q)`` (a force that depends on
-    where the cart is: a cogging or a cable, no named candidate) simulated by the identifier's
-    own model (the position force iterated to its fixed point as an input), or ``- force(q,
-    v)`` by fine exact steps (:func:`_fine_cart`); the position measured with white noise [m];
-    a filtered random force moves the cart over about three periods."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(N) * DT
-    sos = signal.butter(2, 2.0, fs=1 / DT, output="sos")
-    f = 8 * np.sin(2 * np.pi * 0.2 * t + seed) + 6 * signal.sosfilt(sos, rng.normal(size=N))
-    model = OEModel(cart([]).structure, [])
-    theta, x0 = np.array([2.0, 5.0]), np.zeros(2)
-    y = np.zeros((N, 1))
-    if force is not None:
-        y = _fine_cart(f, force)
-    for _ in range(12 if amplitude else 1 if force is None else 0):
-        extra = amplitude * np.sin(ORDER * y[:, 0])
-        y = model.simulate(theta, make_segment("c", t, f - extra, y, ["force"],
-                                               ["position"]), x0)
-    y = y + noise * rng.normal(size=y.shape)
-    return make_segment(f"cart{seed}", t, f, y, ["force"], ["position"])
-
-
-def _fine_cart(f: np.ndarray, force: Callable[[float, float], float]) -> np.ndarray:
-    """``2 v' = f - 5 v - force(q, v)`` from rest, each sample's ``f`` held, 20 exact steps
-    of the linear part per sample with ``force`` held over each; positions (N, 1)."""
-    from scipy.linalg import expm
-
-    h = DT / 20
-    a = np.array([[0.0, 1.0], [0.0, -2.5]])
-    big = expm(np.block([[a, np.array([[0.0], [0.5]])], [np.zeros((1, 3))]]) * h)
-    ad, bd = big[:2, :2], big[:2, 2]
-    x = np.zeros(2)
-    q = np.zeros(f.size)
-    for i in range(f.size):
-        q[i] = x[0]
-        for _ in range(20):
-            x = ad @ x + bd * (f[i] - force(float(x[0]), float(x[1])))
-    return q[:, None]
-
-
-def test_unlisted_finds_a_position_force_from_a_position_sensor() -> None:
+def test_unlisted_finds_a_position_force_from_a_position_sensor(
+        axis_desc: Callable[..., Description],
+        axis_record: Callable[..., Segment]) -> None:
     """On a cart whose position is measured, the library's angle terms at the axis' spatial
     order find the force that depends on the position (a sine of it, not a friction), and on
     the same cart without it the search proposes nothing."""
-    desc = cart([{"effect": "unlisted", "where": "cart", "inputs": [],
+    desc = axis_desc([{"effect": "unlisted", "where": "cart", "inputs": [],
                   "orders": [ORDER / 2, ORDER, 2 * ORDER]}])
     lib = desc.make_candidates()[0]
     assert isinstance(lib, Unlisted)
-    seg = simulate_cart(1, amplitude=1.5)
+    seg = axis_record(1, amplitude=1.5, order=ORDER)
     span = float(np.ptp(seg.y[:, 0]))
     assert span > 2 * PERIOD, span  # the cart travels over the force's periods
     fit = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([seg])
@@ -175,17 +115,18 @@ def test_unlisted_finds_a_position_force_from_a_position_sensor() -> None:
     assert any(t.trig == "sin" and t.order == ORDER and t.speed == "" for t in eff.terms), \
         eff.label()
     assert sc.p_value < 1e-6
-    clean = simulate_cart(2, amplitude=0.0)
+    clean = axis_record(2, amplitude=0.0)
     fit0 = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([clean])
     assert search_unlisted(fit0, [clean], [lib]) is None
 
 
-def test_travel_polynomials_build_evaluate_and_refuse_bad_options() -> None:
+def test_travel_polynomials_build_evaluate_and_refuse_bad_options(
+        axis_desc: Callable[..., Description]) -> None:
     """``travel: [lo, hi]`` adds ``P_j(x)`` and ``sign(s) P_j(x)``, ``j = 1..degree``, on the
     position normalised to [-1, 1] over the travel (and no periodic terms unless ``orders`` is
     given); the formula says what ``x`` is; the model node has no such factor, so a proposal
     with one is reported as not pushable; a bad travel or degree is refused naming both."""
-    desc = cart([{"effect": "unlisted", "where": "cart", "inputs": [], "travel": [0.5, 1.5],
+    desc = axis_desc([{"effect": "unlisted", "where": "cart", "inputs": [], "travel": [0.5, 1.5],
                   "degree": 3}])
     lib = desc.make_candidates()[0]
     assert isinstance(lib, Unlisted)
@@ -210,18 +151,20 @@ def test_travel_polynomials_build_evaluate_and_refuse_bad_options() -> None:
                         ({"travel": [0.0, 1.0], "degree": 9}, "degree: expected an integer"),
                         ({"travel": [0.0, 1.0], "degree": 2.5}, "degree")):
         with pytest.raises(DescriptionError, match="unlisted@cart") as err:
-            cart([{"effect": "unlisted", "where": "cart", "inputs": [], **bad}]
+            axis_desc([{"effect": "unlisted", "where": "cart", "inputs": [], **bad}]
                  ).make_candidates()
         assert needle in str(err.value), err.value
 
 
-def test_unlisted_finds_a_friction_that_grows_along_the_travel() -> None:
+def test_unlisted_finds_a_friction_that_grows_along_the_travel(
+        axis_desc: Callable[..., Description],
+        axis_record: Callable[..., Segment]) -> None:
     """A cart whose friction grows along its travel and has no period (a ball screw's preload
     or a seal: ``2 P1(x) sign(v)``, smoothed over 0.01 m/s, travel [-1, 2] m) is found by the
     travel polynomials as ``sign(w) P1(x)`` with a coefficient within 30 % of the truth's
     ``-2 N`` (``tau`` acts along the motion); the same cart without it gets no proposal."""
     span = (-1.0, 2.0)
-    desc = cart([{"effect": "unlisted", "where": "cart", "inputs": [], "travel": list(span)}])
+    desc = axis_desc([{"effect": "unlisted", "where": "cart", "inputs": [], "travel": list(span)}])
     lib = desc.make_candidates()[0]
     assert isinstance(lib, Unlisted)
 
@@ -229,7 +172,7 @@ def test_unlisted_finds_a_friction_that_grows_along_the_travel() -> None:
         x = (2 * q - span[0] - span[1]) / (span[1] - span[0])
         return float(np.tanh(v / 0.01) * 2.0 * x)
 
-    seg = simulate_cart(3, amplitude=0.0, force=friction)
+    seg = axis_record(3, amplitude=0.0, force=friction)
     fit = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([seg])
     sc = search_unlisted(fit, [seg], [lib])
     assert sc is not None and sc.p_value < 1e-6
@@ -238,6 +181,6 @@ def test_unlisted_finds_a_friction_that_grows_along_the_travel() -> None:
     k = {(t.speed, t.trig, t.order): s.initial for t, s in zip(eff.terms, eff.params,
                                                                  strict=True)}
     assert -2.6 < k.get(("sign", POLY, 1.0), 0.0) < -1.4, eff.label()
-    clean = simulate_cart(4, amplitude=0.0)
+    clean = axis_record(4, amplitude=0.0)
     fit0 = OEFit(OEModel(desc.structure), starts=1, init_window=0).fit([clean])
     assert search_unlisted(fit0, [clean], [lib]) is None

@@ -406,6 +406,16 @@ class Effect:
         """Dry-friction capacity (>= 0): a number or shape (N,); ``None`` for no dry part."""
         return None
 
+    def dry_friction(self, p: Array, seg: SegmentView
+                     ) -> tuple[Array | float, Array | float] | None:
+        """The effect's share of its member's sliding dry friction: the force that opposes the
+        member's motion in the positive and in the negative direction [force unit], each a
+        number or shape (N,) over the segment's samples (it may depend on where the member
+        is); ``None`` for an effect with no dry part. The shares of one member must add up to
+        a friction that opposes the motion everywhere the data take the member
+        (:mod:`dvt_identify.effects.dissipation`)."""
+        return None
+
     def breakaway(self, p: Array) -> float:
         """Extra holding capacity at rest added to the member's dry friction."""
         return 0.0

@@ -93,6 +93,12 @@ class CoulombFriction(Effect):
             return None
         return np.full(seg.u.shape[0], -float(p[1]))
 
+    def dry_friction(self, p: Array, seg: SegmentView
+                     ) -> tuple[Array | float, Array | float] | None:
+        """``Fc + offset`` in the positive direction, ``Fc - offset`` in the negative one."""
+        off = float(p[1]) if len(p) > 1 else 0.0
+        return float(p[0]) + off, float(p[0]) - off
+
     def model_term(self, p: Array, outputs: Sequence[str]) -> Term | None:
         term: Term = {"kind": "coulomb", "member": self.member_list(), "Fc": float(p[0])}
         if len(p) > 1:

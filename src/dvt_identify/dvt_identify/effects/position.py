@@ -667,6 +667,24 @@ class Unlisted(Effect):
             return None
         return np.asarray(self.regressors(seg) @ np.asarray(p, float))
 
+    def dry_friction(self, p: Array, seg: SegmentView
+                     ) -> tuple[Array | float, Array | float] | None:
+        """The terms ``k sign(s) T(theta)`` without an input factor are a friction that depends
+        on where the member is: ``-sum k T(theta)`` opposes the motion in either direction,
+        shape (N,); ``None`` without such a term (a force, or an input-side term)."""
+        dry = [(t, float(k)) for t, k in zip(self.terms, p, strict=True)
+               if t.speed == "sign" and t.input < 0]
+        if not dry:
+            return None
+        s, theta, _ = member_motion(seg, self.require_member(), self.readout)
+        thetas = {0: theta}
+        out = np.zeros_like(s)
+        for t, k in dry:
+            if t.mesh not in thetas:
+                thetas[t.mesh] = member_motion(seg, self.mesh_form(t.mesh), self.readout)[1]
+            out -= k * replace(t, speed="").evaluate(np.ones_like(s), thetas[t.mesh], seg.u)
+        return out, out
+
     def why_no_term(self, outputs: Sequence[str]) -> str:
         """A polynomial of the position (the node has none), else every coefficient 0."""
         if any(t.trig == POLY for t in self.terms):
