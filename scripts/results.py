@@ -6,8 +6,9 @@ machine's core count and the wall time, beside the figures the command printed. 
 
     scripts/results.sh NAME [NAME ...]     # or: .venv/bin/python scripts/results.py NAME
 
-Names: ``emps`` (examples/emps/run.sh), ``demo`` (scripts/demo.sh: its summary.json),
-``identify`` (``dvt-bench identify --json``),
+Names: ``emps`` (examples/emps/run.sh), ``emps_nested`` (the refit after the choice, judged on
+the EMPS estimation record alone, examples/emps/nested.py), ``demo`` (scripts/demo.sh: its
+summary.json), ``identify`` (``dvt-bench identify --json``),
 ``hours`` (``dvt-bench identify --hours 1 --json``), ``loop`` (``dvt-bench loop
 --with-identifier --json``), ``model`` (``dvt-bench model --json``), ``false_effects`` (the
 randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
@@ -139,6 +140,7 @@ def _script(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
 
 NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "emps": emps,
+    "emps_nested": _script("examples/emps/nested.py", "--json"),
     "demo": demo,
     "identify": _bench("identify", "--json"),
     "hours": _bench("identify", "--hours", "1", "--json"),
