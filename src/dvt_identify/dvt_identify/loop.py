@@ -729,9 +729,9 @@ def refit_whole(result: IdentificationResult, whole: Sequence[Segment],
     (one fold, :func:`make_stage` ``folds``); its parameters, uncertainties and estimation
     figures are the refit's. The linear reference is refitted likewise at its chosen order.
     A refit that fails, or leaves an effect inadmissible (:func:`inadmissible_effects`), keeps
-    that stage's first-part fit, with a note. Measured on the EMPS estimation record cut at
-    70 % (the procedure run on its first part, scored on its last 30 %, no test record): 5.17
-    mm fitted on the first part, 4.63 mm refitted on all of it."""
+    that stage's first-part fit, with a note. Measured on the EMPS estimation record alone
+    (``examples/emps/nested.py``: the procedure run on its first 50-90 %, scored on the rest):
+    the refit better in four of five cuts (5.17 -> 4.63 mm at 70 %; 1.27 -> 1.33 at 90 %)."""
     say = say or (lambda _m: None)
     cfg = result.config
     held = list(result.val_segments)
