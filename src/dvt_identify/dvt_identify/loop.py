@@ -152,6 +152,15 @@ UNDISSIPATIVE_NOTE = ("a truncated series of a friction that is >= 0 everywhere 
 (:mod:`dvt_identify.effects.dissipation`)."""
 
 
+def physics_notes(fit: OEFit, segments: Sequence[Segment]) -> list[str]:
+    """``physics: ...`` notes on ``fit``: each member whose dry frictions add up to one that
+    drives it somewhere on ``segments`` (:func:`undissipative`; flagged, not refused:
+    :data:`UNDISSIPATIVE_NOTE`)."""
+    return [f"physics: {why} (flagged, not refused: {UNDISSIPATIVE_NOTE})"
+            for why in undissipative(fit.model.effects, fit.model.effect_params(fit.theta_),
+                                     segments)]
+
+
 def _seg_losses(fit: OEFit, segments: Sequence[Segment]) -> tuple[Array, int, int]:
     """Mean squared weighted residual per output (ny,), N, ny.
 
@@ -424,10 +433,9 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                          "doubled): " + ", ".join(
                              f"{stage.fit.model.names[j]} {stage.fit.landing_spread_[j]:.3g}"
                              for j in stage.fit.model.chaotic_parameters()))
-    for why in undissipative(current.fit.model.effects,
-                             current.fit.model.effect_params(current.fit.theta_), fit_segs):
-        notes.append(f"physics: {why} (flagged, not refused: {UNDISSIPATIVE_NOTE})")
-        say(notes[-1])
+    for line in physics_notes(current.fit, fit_segs):
+        notes.append(line)
+        say(line)
     return IdentificationResult(
         description=desc, estimation_bags=[s.name for s in est],
         validation_bags=[s.name for s in val], baseline=baseline, final=current, rounds=rounds,
@@ -770,6 +778,9 @@ def refit_whole(result: IdentificationResult, whole: Sequence[Segment],
         "their uncertainty and the estimation and test figures are the refit's")
     say(result.notes[-1])
     result.baseline, result.final = stages[0], stages[-1]
+    # the physics flags are the refitted final model's
+    result.notes = [n for n in result.notes if not n.startswith("physics: ")]
+    result.notes.extend(physics_notes(result.final.fit, fit_segs))
     result.est_segments = list(whole)
     result.estimation_bags = [s.name for s in whole]
     result.whole = True
