@@ -12,7 +12,7 @@ them, fits the baseline output-error model, runs the augment loop and writes
 ``DIR/series/*.csv``, with ``--mcap`` bags; :mod:`dvt_identify.series`). The validation bags
 choose the effects (a selection figure); ``--test`` bags are read after every choice and give
 a figure that took no part in any. ``--select-on holdout`` chooses on the held-out end of the
-estimation bags instead, ``--select-on cv`` by cross-validation: leave-one-bag-out across the
+estimation bags instead (the chosen model then refitted on the whole bags), ``--select-on cv`` by cross-validation: leave-one-bag-out across the
 estimation bags, or across contiguous blocks of a single bag (each simulated by the model
 fitted on the others, the pooled out-of-fold errors in the acceptance test, the accepted model
 fitted on all of them); both treat the ``--validate`` bags, if any, as test data. Progress goes
@@ -193,7 +193,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--select-on", choices=("validation", "holdout", "cv"),
                     default="validation",
                     help="data that choose the effects: the validation bags (default), the "
-                         "held-out last 30 %% of each estimation bag (holdout), or "
+                         "held-out last 30 %% of each estimation bag (holdout: the chosen "
+                         "model is then refitted on the whole bags), or "
                          "cross-validation (cv: leave-one-bag-out across the estimation bags, "
                          "or across contiguous blocks of a single bag); with holdout and cv the "
                          "--validate bags are test data")

@@ -339,7 +339,8 @@ def _selection(result: IdentificationResult) -> dict[str, str]:
     how = getattr(result, "selection", "validation")
     n_bags = len({s.name.split("#")[0] for s in getattr(result, "est_segments", []) or []})
     chosen = {"holdout": "the held-out last part of each estimation segment (the 'validation' "
-                         "figures are on it)",
+                         "figures are on it, by the models fitted without it; the parameters "
+                         "are the chosen models refitted on the whole segments)",
               "cv": f"leave-one-bag-out cross-validation across the {n_bags} estimation bags "
                     "(the 'validation' figures are out of fold: each bag simulated by the "
                     "model fitted on the other bags; the parameters are the fit on all of "
