@@ -12,8 +12,9 @@ them, fits the baseline output-error model, runs the augment loop and writes
 ``DIR/series/*.csv``, with ``--mcap`` bags; :mod:`dvt_identify.series`). The validation bags
 choose the effects (a selection figure); ``--test`` bags are read after every choice and give
 a figure that took no part in any. ``--select-on holdout`` chooses on the held-out end of the
-estimation bags instead (the chosen model then refitted on the whole bags), ``--select-on cv`` by cross-validation: leave-one-bag-out across the
-estimation bags, or across contiguous blocks of a single bag (each simulated by the model
+estimation bags instead (the chosen model then refitted on the whole bags), ``--select-on
+cv`` by cross-validation: leave-one-bag-out across the estimation bags, or across contiguous
+blocks of a single bag (each simulated by the model
 fitted on the others, the pooled out-of-fold errors in the acceptance test, the accepted model
 fitted on all of them); both treat the ``--validate`` bags, if any, as test data. Progress goes
 to stderr; stdout ends with the summary: the test figures first (RMSE and fit, the linear
