@@ -152,6 +152,31 @@ UNDISSIPATIVE_NOTE = ("a truncated series of a friction that is >= 0 everywhere 
 (:mod:`dvt_identify.effects.dissipation`)."""
 
 
+RESCORED = "; rescored next round"
+"""How a round's loser that passed its tests ends its reason (another one won the round)."""
+
+
+def _note_cap(decisions: Sequence[Decision], rnd: int, n_added: int, max_effects: int,
+              notes: list[str], say: Progress) -> None:
+    """When the loop stopped at ``max_effects`` added effects with candidates of the last
+    round that passed their tests but lost the round to another: their reasons say that no
+    next round came, and a note names them (the description's ``fit.max_effects`` is the
+    cap). Nothing otherwise."""
+    if n_added < max_effects:
+        return
+    waiting = [d for d in decisions
+               if d.round == rnd and not d.accepted and d.reason.endswith(RESCORED)]
+    for d in waiting:
+        d.reason = (d.reason[: -len(RESCORED)] + f"; not rescored: the loop stopped at "
+                    f"max_effects = {max_effects}")
+    if waiting:
+        notes.append(f"the loop stopped at max_effects = {max_effects} (the description's "
+                     f"fit.max_effects) while {', '.join(d.score.label for d in waiting)} "
+                     f"passed every test in round {rnd} and lost the round to the effect "
+                     "accepted there: raise max_effects to try them against the final model")
+        say(notes[-1])
+
+
 def physics_notes(fit: OEFit, segments: Sequence[Segment]) -> list[str]:
     """``physics: ...`` notes on ``fit``: each member whose dry frictions add up to one that
     drives it somewhere on ``segments`` (:func:`undissipative`; flagged, not refused:
@@ -394,7 +419,7 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
         best = choice.chosen
         for d, why in choice.losers:
             d.accepted = False
-            d.reason = f"passes ({d.reason}) but {why}; rescored next round"
+            d.reason = f"passes ({d.reason}) but {why}{RESCORED}"
         assert best.stage is not None
         if unexplained is not None:
             again = drift_check(best.stage.fit, fit_segs, cfg.drift_windows, cfg.alpha,
@@ -422,6 +447,8 @@ def identify(est: Sequence[Segment], val: Sequence[Segment], desc: Description,
                                folds, notes)
     if unexplained is not None:
         notes.append(_drift_veto(unexplained, tried=True))
+    _note_cap(decisions, rnd, len(current.effects) - n_model_effects, cfg.max_effects, notes,
+              say)
     if current is not baseline and not same_rate:
         current = _polish_dry(current, baseline, est, val, cfg, folds, say, notes)
     for stage in (baseline, current) if current is not baseline else (baseline,):

@@ -102,6 +102,11 @@ def test_coulomb_accepted_and_recovered(tmp_path: Path) -> None:
     assert asym.reason.startswith("passes (")
     assert ("but coulomb_friction@v has the larger LR" in asym.reason
             and "and is significantly better on validation (error " in asym.reason)
+    # no next round came (max_effects 1): the reason and a note say so, not "rescored next round"
+    assert asym.reason.endswith("; not rescored: the loop stopped at max_effects = 1"), \
+        asym.reason
+    assert any(n.startswith("the loop stopped at max_effects = 1") and "asymmetric_friction@v"
+               in n for n in res.notes), res.notes
     rep = build_report(res)
     first = rep["effects"][0]
     assert first["name"] == "coulomb_friction" and first["accepted"] is True
