@@ -280,17 +280,20 @@ def _check(probe: _Probe, before: str, target: str, resets: int) -> tuple[str, i
     description, predictions), and applied a transaction once (one detector reset, from
     ``resets`` before); returns the model and the detector's count of resets."""
     for _ in range(READS):
-        t_read = time.time()
         state = probe.parameters()
+        # the status must be stamped after the node answered the read: taken before the read
+        # (as until 2026-12-06), a transaction landing between that time and the read left a
+        # status of the state before it (a fresh clone's CI with one core kept busy: the read
+        # and the read again "old", the status after the earlier time "new")
+        t_read = time.time()
         which = _which(state)
         # the parameter events of the values read (published before the answer to the pusher,
         # received on another reader)
         probe.spin_until(lambda state=state: probe.tracked == state, 10.0,
                          f"parameter events reaching {state} (tracked: {probe.tracked})")
         message, _, detector = probe.status_after(t_read)
-        # a request written just before the kill may land after the read (seen with one core
-        # kept busy: the status after the read described the new model, the read the old):
-        # the read, its events and the status must be of one state, so read again then
+        # a request written just before the kill may land after the read: the read, its
+        # events and the status must be of one state, so read again then
         if probe.parameters() == state:
             break
     mixes = [e for e in probe.events if e[1] == "mix"]
