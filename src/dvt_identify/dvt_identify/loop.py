@@ -774,11 +774,8 @@ def refit_whole(result: IdentificationResult, whole: Sequence[Segment],
     fit_segs, _ = fit_segments(whole, base, 1 if cfg.init_window > 0 else cfg.fit_decimate)
     same_rate = all(f is s for f, s in zip(fit_segs, whole, strict=True))
     fold = list(range(len(held)))
-    stages: list[Stage] = []
-    for stage in (result.baseline, result.final):
-        if stages and stage is result.baseline:  # nothing was accepted: one stage
-            stages.append(stages[0])
-            continue
+
+    def refit(stage: Stage) -> Stage:
         first = stage.fit
         try:
             fit = OEFit(first.model, theta0=first.theta_, more_starts=0, physics_start=False,
@@ -788,15 +785,17 @@ def refit_whole(result: IdentificationResult, whole: Sequence[Segment],
             if bad:
                 raise FitError("inadmissible there: " + "; ".join(bad))
             fit.add_landing_spread(fit.segments_)
-            new = make_stage(stage.label, fit, whole, held, same_rate, cfg.lags,
-                             ([first], [fold]))
+            return make_stage(stage.label, fit, whole, held, same_rate, cfg.lags,
+                              ([first], [fold]))
         except FitError as exc:
             result.notes.append(f"{stage.label}: not refitted on the whole estimation "
                                 f"segments ({exc}); its parameters are those fitted on their "
                                 "first part")
             say(result.notes[-1])
-            new = stage
-        stages.append(new)
+            return stage
+
+    baseline = refit(result.baseline)
+    final = baseline if result.final is result.baseline else refit(result.final)
     whole_text = ", ".join(f"{s.name} ({s.n} samples)" for s in whole)
     result.notes.append(
         f"parameters refitted on the whole estimation segments ({whole_text}) after the "
@@ -804,7 +803,7 @@ def refit_whole(result: IdentificationResult, whole: Sequence[Segment],
         "and gives the selection figures (simulated by the fit without it); the parameters, "
         "their uncertainty and the estimation and test figures are the refit's")
     say(result.notes[-1])
-    result.baseline, result.final = stages[0], stages[-1]
+    result.baseline, result.final = baseline, final
     # the physics flags are the refitted final model's
     result.notes = [n for n in result.notes if not n.startswith("physics: ")]
     result.notes.extend(physics_notes(result.final.fit, fit_segs))

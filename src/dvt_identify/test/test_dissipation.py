@@ -70,9 +70,6 @@ def test_a_sum_that_drives_the_member_at_the_ends_of_its_travel_is_named(
     assert "dry friction on cart" in why and "falls to -1 N" in why, why
     assert "at its angle 0 " in why or "at its angle 1 " in why, why
     assert "coulomb_friction@cart +2" in why and "unlisted@cart -3" in why, why
-    # restricted to another member, nothing to say
-    assert undissipative([coul, prop], [np.array([2.0]), np.array([3.0])], [_sweep()],
-                         member=np.array([0.0, 0.0])) == []
 
 
 def test_an_offset_counts_in_its_direction(axis_desc: Callable[..., Description]) -> None:

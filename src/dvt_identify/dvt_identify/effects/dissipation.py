@@ -1,4 +1,5 @@
-"""Dry frictions that add up to a friction: a model-level admissibility check.
+"""Dry frictions that add up to a friction: a model-level physics check (flagged, not refused:
+:data:`dvt_identify.loop.UNDISSIPATIVE_NOTE`).
 
 Each effect checks its own parameters (:meth:`~dvt_identify.effects.base.Effect.inadmissible`):
 a Coulomb friction ``Fc >= 0`` with ``|offset| <= Fc``. Several effects on one member can
@@ -29,15 +30,11 @@ TOLERANCE = 1e-9
 """Relative round-off allowed below 0 (of the largest share's magnitude)."""
 
 
-def undissipative(effects: Sequence[Effect], params: Sequence[Array], segments: Sequence[Any],
-                  member: Array | None = None) -> list[str]:
+def undissipative(effects: Sequence[Effect], params: Sequence[Array], segments: Sequence[Any]
+                  ) -> list[str]:
     """Why the dry frictions of ``effects`` (fitted ``params``, one array per effect) do not
     oppose the motion on ``segments`` (:class:`dvt_identify.data.Segment` or anything
-    :meth:`SegmentView.of` takes), one text per member; empty when they do.
-
-    ``member``: check only this member (a candidate's refit: the rest of the model was
-    checked when it was accepted or declared).
-    """
+    :meth:`SegmentView.of` takes), one text per member; empty when they do."""
     views = [SegmentView.of(seg) for seg in segments]
     groups: dict[tuple[float, ...], list[tuple[Effect, Array]]] = {}
     for eff, p in zip(effects, params, strict=True):
@@ -45,46 +42,36 @@ def undissipative(effects: Sequence[Effect], params: Sequence[Array], segments: 
             continue
         key = tuple(float(v) for v in np.asarray(eff.member, float))
         groups.setdefault(key, []).append((eff, np.asarray(p, float)))
-    out = []
-    only = None if member is None else tuple(float(v) for v in np.asarray(member, float))
-    for key, members in groups.items():
-        if only is not None and key != only:
-            continue
-        why = _member_violation(members, views)
-        if why is not None:
-            out.append(why)
-    return out
+    return [why for members in groups.values()
+            if (why := _member_violation(members, views)) is not None]
 
 
 def _member_violation(members: Sequence[tuple[Effect, Array]],
                       views: Sequence[SegmentView]) -> str | None:
     """The violation text for one member's effects, or ``None``."""
     worst: tuple[float, int, float, list[str]] | None = None  # value, direction, angle, shares
-    checked = False
     for view in views:
-        shares = [(e, e.dry_friction(p, view)) for e, p in members]
-        present = [(e, sh) for e, sh in shares if sh is not None]
-        if not present or (len(present) == 1 and all(np.ndim(v) == 0 for v in present[0][1])):
-            continue
-        checked = True
         n = view.u.shape[0]
-        scale = max(float(np.max(np.abs(v))) for _, sh in present for v in sh)
+        shares = [(e, sh) for e, p in members if (sh := e.dry_friction(p, view)) is not None]
+        if not shares or (len(shares) == 1 and all(np.ndim(v) == 0 for v in shares[0][1])):
+            continue  # nothing dry, or one constant share: the law's own check
+        # each share as (effect, (positive (N,), negative (N,)))
+        present: list[tuple[Effect, tuple[Array, Array]]] = [
+            (e, (np.broadcast_to(np.asarray(sh[0], float), (n,)),
+                 np.broadcast_to(np.asarray(sh[1], float), (n,)))) for e, sh in shares]
+        scale = max(float(np.max(np.abs(a))) for _, dirs in present for a in dirs)
         for d in (0, 1):
-            total = np.zeros(n)
-            for _, sh in present:
-                total = total + np.broadcast_to(np.asarray(sh[d], float), (n,))
+            total = np.sum([dirs[d] for _, dirs in present], axis=0)
             i = int(np.argmin(total))
             low = float(total[i])
-            if low >= -TOLERANCE * max(scale, 1e-12):
+            if low >= -TOLERANCE * max(scale, 1e-12) or (worst is not None and low >= worst[0]):
                 continue
-            if worst is None or low < worst[0]:
-                eff0 = present[0][0]
-                angle = float(member_motion(view, eff0.require_member(), eff0.readout)[1][i])
-                parts = [f"{e.label().split(':')[0]} "
-                         f"{float(np.broadcast_to(np.asarray(sh[d], float), (n,))[i]):+.4g}"
-                         for e, sh in present]
-                worst = (low, d, angle, parts)
-    if not checked or worst is None:
+            eff0 = present[0][0]
+            angle = float(member_motion(view, eff0.require_member(), eff0.readout)[1][i])
+            parts = [f"{e.label().split(':')[0]} {float(dirs[d][i]):+.4g}"
+                     for e, dirs in present]
+            worst = (low, d, angle, parts)
+    if worst is None:
         return None
     low, d, angle, parts = worst
     eff0 = members[0][0]

@@ -637,13 +637,18 @@ class Unlisted(Effect):
         """The proposal: the terms ``idx`` of the library with start coefficients ``values``."""
         return self.with_terms([self.terms[i] for i in idx], values)
 
-    def regressors(self, seg: SegmentView) -> Array:
-        """Every term's value on the segment, shape (N, n_terms)."""
+    def _motion(self, seg: SegmentView) -> tuple[Array, dict[int, Array]]:
+        """The member's speed (N,) and the angle each term reads, by mesh (0: the member's)."""
         s, theta, _ = member_motion(seg, self.require_member(), self.readout)
         thetas = {0: theta}
         for t in self.terms:
             if t.mesh not in thetas:
                 thetas[t.mesh] = member_motion(seg, self.mesh_form(t.mesh), self.readout)[1]
+        return s, thetas
+
+    def regressors(self, seg: SegmentView) -> Array:
+        """Every term's value on the segment, shape (N, n_terms)."""
+        s, thetas = self._motion(seg)
         return np.column_stack([t.evaluate(s, thetas[t.mesh], seg.u) for t in self.terms])
 
     def mesh_form(self, stage: int) -> Array:
@@ -676,13 +681,9 @@ class Unlisted(Effect):
                if t.speed == "sign" and t.input < 0]
         if not dry:
             return None
-        s, theta, _ = member_motion(seg, self.require_member(), self.readout)
-        thetas = {0: theta}
-        out = np.zeros_like(s)
-        for t, k in dry:
-            if t.mesh not in thetas:
-                thetas[t.mesh] = member_motion(seg, self.mesh_form(t.mesh), self.readout)[1]
-            out -= k * replace(t, speed="").evaluate(np.ones_like(s), thetas[t.mesh], seg.u)
+        s, thetas = self._motion(seg)
+        out = -sum((k * replace(t, speed="").evaluate(np.ones_like(s), thetas[t.mesh], seg.u)
+                    for t, k in dry), np.zeros_like(s))
         return out, out
 
     def why_no_term(self, outputs: Sequence[str]) -> str:
