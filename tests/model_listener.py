@@ -77,9 +77,11 @@ class ModelListener:
         """The model node's parameter values."""
         cli = self.node.create_client(GetParameters, f"/{MODEL_NODE}/get_parameters")
         self.spin_until(cli.service_is_ready, 10.0, "get_parameters service")
-        fut = cli.call_async(GetParameters.Request(names=names))
-        self.spin_until(fut.done, 20.0, "get_parameters")
-        return fut.result().values
+        reply = rosutil.call_idempotent(self.exe, cli, GetParameters.Request(names=names), 20.0)
+        if reply is None:  # a fresh client: sent again while its reply route is matched
+            raise TimeoutError(f"/{MODEL_NODE}/get_parameters {names}: no answer in 20 s")
+        self.node.destroy_client(cli)
+        return reply.values
 
     def set_string(self, name: str, value: str) -> tuple[bool, str]:
         """Set a string parameter of the model node; (successful, reason)."""

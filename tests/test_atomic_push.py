@@ -196,10 +196,12 @@ class _Probe:
         return int(self.status_after(time.time())[2]["resets"])
 
     def parameters(self, names: tuple[str, ...] = PUSHED) -> dict[str, Any]:
-        fut = self.get.call_async(GetParameters.Request(names=list(names)))
-        self.spin_until(fut.done, 20.0, "get_parameters")
+        reply = rosutil.call_idempotent(self.exe, self.get,
+                                        GetParameters.Request(names=list(names)), 20.0)
+        if reply is None:
+            pytest.fail(f"get_parameters {names}: no answer in 20 s")
         return {n: _plain(parameter_value_to_python(v))
-                for n, v in zip(names, fut.result().values, strict=True)}
+                for n, v in zip(names, reply.values, strict=True)}
 
     def set_plain(self, name: str, value: Any) -> Any:
         """One parameter through the plain SetParameters service (``ros2 param set``)."""

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -184,3 +185,69 @@ def test_reply_waits_the_budget_for_a_late_reader(ros_env: dict[str, str],
     assert 0.9 * REPLY_WAIT_S <= held <= REPLY_WAIT_S + 1.0, held
     default = _server_wait(tmp_path, ros_env, "default")  # the control: rmw's own 100 ms
     assert default < 0.5, default
+
+
+LOSING_SERVER = r'''
+import sys
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from std_srvs.srv import Trigger
+rclpy.init()
+node = rclpy.create_node("losing_server")
+calls = [0]
+def on_call(req, resp):
+    calls[0] += 1
+    if calls[0] <= 2:  # the first two replies are lost (raised before they are sent)
+        raise LookupError(f"call {calls[0]} lost")
+    resp.success, resp.message = True, f"call {calls[0]}"
+    return resp
+node.create_service(Trigger, sys.argv[1], on_call)
+exe = SingleThreadedExecutor()
+exe.add_node(node)
+print("UP", flush=True)
+while True:
+    try:
+        exe.spin_once(timeout_sec=0.1)
+    except LookupError as exc:
+        print(f"LOST {exc}", flush=True)
+'''
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_an_idempotent_call_is_sent_again_after_a_lost_reply(
+        procs: Any, rclpy_context: Any, tmp_path: Path) -> None:
+    """:func:`dvt_model.rosutil.call_idempotent` against a real server that loses its first two
+    replies: sent once (the control), the call gets nothing; sent again every second, it gets
+    the third."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
+
+    service = "/dvt_test/losing"
+    (tmp_path / "server.py").write_text(LOSING_SERVER)
+    server = procs.start("python3", str(tmp_path / "server.py"), service)
+    wait_for(lambda: "UP" in procs.log(server) or server.poll() is not None, 30, "server up")
+    node = rclpy.create_node("losing_client", context=rclpy_context)
+    exe = SingleThreadedExecutor(context=rclpy_context)
+    exe.add_node(node)
+    try:
+        cli = node.create_client(Trigger, service)
+        wait_for(lambda: exe.spin_once(timeout_sec=0.05) or cli.service_is_ready(), 30,
+                 "the service")
+        assert rosutil.call_idempotent(exe, cli, Trigger.Request(), 2.0, resend_s=5.0) is None
+        wait_for(lambda: "call 1 lost" in procs.log(server), 10, "the first loss")
+        reply = rosutil.call_idempotent(exe, cli, Trigger.Request(), 20.0, resend_s=1.0)
+        assert reply is not None and reply.message == "call 3", reply
+        assert "call 2 lost" in procs.log(server)
+        assert not cli._pending_requests, "a request left pending"
+    finally:
+        exe.remove_node(node)
+        node.destroy_node()
+
+
+def test_call_idempotent_rejects_bad_budgets_naming_them() -> None:
+    with pytest.raises(ValueError, match="resend_s=0"):
+        rosutil.call_idempotent(None, None, None, 1.0, resend_s=0)
+    with pytest.raises(ValueError, match="timeout=-1"):
+        rosutil.call_idempotent(None, None, None, -1, resend_s=1.0)

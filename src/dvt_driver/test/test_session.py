@@ -286,6 +286,27 @@ def test_command_answers_are_matched_and_expire() -> None:
     assert s.unanswered == 1 and (FrameType.COMMAND, c3.seq) not in s.pending
 
 
+def test_command_gap_is_the_longest_interval_of_one_active_run() -> None:
+    """``command_gap_max`` [s]: the longest interval between two COMMANDs while active; an
+    inactive spell or a lost link starts a new run (the pause between runs is not a gap)."""
+    s = streaming()
+    s.poll(0.0, active=True)
+    command(s, 0.0)
+    command(s, 0.02)
+    command(s, 0.07)  # 50 ms
+    assert s.command_gap_max == pytest.approx(0.05)
+    s.poll(0.08, active=False)
+    s.poll(5.0, active=True)
+    command(s, 5.0)  # after 4.93 s inactive: a new run
+    command(s, 5.03)
+    assert s.command_gap_max == pytest.approx(0.05)
+    s.link_lost(5.04, "unplugged")
+    command(s, 9.0)
+    assert s.command_gap_max == pytest.approx(0.05)
+    command(s, 9.2)
+    assert s.command_gap_max == pytest.approx(0.2)
+
+
 # -- stream timeout ------------------------------------------------------------------------------
 
 def test_stream_timeout_closes_the_session_and_says_hello() -> None:

@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import tempfile
+import time
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -200,3 +201,43 @@ def init(args: list[str] | None = None, *, reply_wait: Sequence[str] = ()) -> li
     if kept is not None:
         rclpy.logging.get_logger("dvt.rosutil").warning(kept)
     return list(rclpy.utilities.remove_ros_args(argv))
+
+
+def call_idempotent(executor: Any, client: Any, request: Any, timeout: float,
+                    resend_s: float = 2.0) -> Any | None:
+    """Call ``client`` with an idempotent ``request`` (a state or parameter read, a refused
+    transition), spinning ``executor``; send it again every ``resend_s`` seconds while no
+    reply came, and return the first reply, or ``None`` after ``timeout`` seconds.
+
+    A real-time server (the driver, the model node) keeps Fast DDS's default reply wait
+    (:data:`~dvt_model.contract.FASTDDS_DEFAULT_REPLY_WAIT_S`): while a fresh client's
+    response reader is still being matched, the server drops its reply (``failed to send
+    response``), and a single request would wait its whole budget for nothing. Sending again
+    once the route is matched costs the server one more answer.
+
+    Raises:
+        ValueError: ``timeout`` or ``resend_s`` not > 0.
+    """
+    if not (timeout > 0 and resend_s > 0):
+        raise ValueError(f"call_idempotent: expected timeout > 0 and resend_s > 0 s, got "
+                         f"timeout={timeout!r}, resend_s={resend_s!r}")
+    deadline = time.monotonic() + timeout
+    futures: list[Any] = []
+    try:
+        while True:
+            now = time.monotonic()
+            if now >= deadline:
+                return None
+            if client.service_is_ready():
+                futures.append(client.call_async(request))
+            until = min(deadline, now + resend_s)
+            while time.monotonic() < until:
+                executor.spin_once(timeout_sec=0.01)
+                done = next((f for f in futures if f.done()), None)
+                if done is not None:
+                    return done.result()
+                if not futures and client.service_is_ready():
+                    break  # the service appeared: send now
+    finally:
+        for f in futures:  # done ones too: their own removal runs on a later spin
+            client.remove_pending_request(f)

@@ -131,6 +131,7 @@ class DriverNode(DriverDiagnostics):
         self._refusals_logged = 0
         self._transition_errors = 0
         self._last_config_error = ""
+        self._io_cycle_max = 0.0  # [s] longest interval between two I/O cycles while active
         self.pub_js = self.create_lifecycle_publisher(JointState, JOINT_STATES,
                                                       rosutil.SENSOR_QOS)
         self.pub_cur = self.create_lifecycle_publisher(JointState, CURRENTS, rosutil.SENSOR_QOS)
@@ -466,12 +467,20 @@ class DriverNode(DriverDiagnostics):
     def _io_loop(self, io: _Io) -> None:
         link, session = io.link, io.session
         clock = self.get_clock()
+        last_cycle: float | None = None
         while not self._stop.is_set():
             now = time.monotonic()
             cycle_start = now
             active = self._active
             if not active:
                 self._send_now.clear()  # nothing is sent while inactive
+                last_cycle = None
+            else:
+                # the thread's longest absence (waits are <= READ_SLICE): a longer one is the
+                # process not being run, which no keep-alive schedule can help
+                if last_cycle is not None:
+                    self._io_cycle_max = max(self._io_cycle_max, now - last_cycle)
+                last_cycle = now
             if link.state is not LinkState.CONNECTED:
                 with self._send_lock:
                     acts = session.link_lost(now, link.last_error or "")

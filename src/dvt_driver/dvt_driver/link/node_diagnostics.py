@@ -42,6 +42,7 @@ class DriverDiagnostics(LifecycleNode):
     _diag_prev_time: float
     _transition_errors: int
     _last_config_error: str
+    _io_cycle_max: float
     pub_diag: Publisher
 
     def _diag_tick(self) -> None:
@@ -103,6 +104,8 @@ class DriverDiagnostics(LifecycleNode):
             **counters,
             "bytes_received": st.bytes_received,
             "commands_sent": ses.commands_sent, "acks": ses.acks,
+            "command_gap_max_ms": f"{ses.command_gap_max * 1e3:.1f}",
+            "io_cycle_max_ms": f"{self._io_cycle_max * 1e3:.1f}",
             "nacks_by_reason": ",".join(f"{k}={v}" for k, v in ses.nacks_by_reason.items()),
             "last_refusal": sup.last_refusal, "last_trip": sup.last_trip,
             "mode": MotorMode(sup.mode).name, "setpoint": f"{sup.setpoint:g}",

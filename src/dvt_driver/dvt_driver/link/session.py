@@ -225,6 +225,8 @@ class Session:
         self.nacks_by_reason: dict[str, int] = {}
         self.unanswered = 0
         self.commands_sent = 0
+        self.command_gap_max = 0.0  # [s] longest interval between two COMMANDs of one active run
+        self._last_command_at: float | None = None
         self.reopen_attempts = 0
         self.last_reopen_error = ""
         # schedule
@@ -333,6 +335,7 @@ class Session:
         self.config_ok = False
         self.pending.clear()
         self._last_sample_time = None
+        self._last_command_at = None
         self._down_since = now
         self._down_attempts = 0
         self._reopen_delay = self.timing.reconnect_interval
@@ -393,6 +396,7 @@ class Session:
             self._expire(now, acts)
         if not active:
             self._want_command = False  # nothing is sent while inactive
+            self._last_command_at = None  # the next COMMAND starts a new run of keep-alives
         elif self.open and (urgent or self._want_command or now >= self._next_command):
             acts.command = True
             self._want_command = False
@@ -403,6 +407,9 @@ class Session:
         """``msg`` was written at ``now``: expect its answer (CONFIG, COMMAND)."""
         if isinstance(msg, Command):
             self.commands_sent += 1
+            if self._last_command_at is not None:
+                self.command_gap_max = max(self.command_gap_max, now - self._last_command_at)
+            self._last_command_at = now
             self.pending[(FrameType.COMMAND, msg.seq)] = now
         elif isinstance(msg, Config):
             self.pending[(FrameType.CONFIG, msg.seq)] = now
@@ -459,6 +466,7 @@ class Session:
         self.state = SessionState.HELLO
         self._offer = PROTOCOL_VERSION
         self._last_sample_time = None
+        self._last_command_at = None
         self._hellos_on_link = 0
         self._next_hello = now
 

@@ -110,10 +110,12 @@ __all__ = ["FaultInjector", "PlantServer", "PtyPort", "build_parser", "main"]
 _READ_CHUNK = 4096
 _MAX_CATCH_UP = 200  # samples produced in one go before the loop serves I/O again
 _OWN_STALL = 0.9
-"""A watchdog trip counts in ``watchdog_trips_in_catch_up`` when the plant read the last command
-before it while at least this share of the watchdog timeout behind its schedule: a command is
-stamped with the controller clock at reading, so a stall of the plant itself ages it by that
-much."""
+"""A watchdog trip counts in ``watchdog_trips_in_catch_up`` (the plant's own) unless the plant
+had been reading the line and finding no command for at least this share of the watchdog
+timeout: a command is stamped with the controller clock when the plant reads it, so a plant
+that was behind its schedule then, or that stopped reading (a stall, a catch-up burst), ages
+the command by time in which the host may well have sent more. ``host_silence_max_ms`` is the
+longest such reading-and-finding-nothing before a trip."""
 
 
 class PtyPort:
@@ -258,7 +260,7 @@ class PlantServer:
             "samples_produced": 0, "samples_sent": 0, "samples_lost_offline": 0,
             "tx_overruns": 0, "host_overruns": 0, "frames_received": 0, "replies_sent": 0,
             "disconnects": 0, "resets": 0, "max_burst": 0, "late_samples": 0,
-            "watchdog_trips_in_catch_up": 0,
+            "watchdog_trips_in_catch_up": 0, "host_silence_max_ms": 0,
             "changes_applied": 0, "change_requests_refused": 0,
         }
 
@@ -424,7 +426,8 @@ class PlantServer:
         anchor_wall, anchor_us = start, sim.t_us
         disconnect_at = self.disconnect_at
         reset_at = self.reset_at
-        command_lag = 0.0  # [s] how far behind schedule the plant was when it last read a command
+        command_read_at = time.monotonic()  # [s] when the plant last read a command
+        read_at = command_read_at  # [s] when it last read the line
         try:
             while not self._stop:
                 now = time.monotonic()
@@ -445,8 +448,9 @@ class PlantServer:
                     self._reconnect(now)
                 accepted = sim.commands_accepted
                 self._read()
+                read_at = now
                 if sim.commands_accepted != accepted:
-                    command_lag = now - (anchor_wall + (sim.t_us - anchor_us) * 1e-6)
+                    command_read_at = now
                 # produce every due sample (absolute deadlines)
                 deadline = anchor_wall + (sim.t_us - anchor_us) * 1e-6
                 produced = 0
@@ -464,12 +468,14 @@ class PlantServer:
                     n_applied = len(sim.changes_applied)
                     trips = sim.watchdog_trips
                     values = sim.tick()
-                    if (sim.watchdog_trips != trips
-                            and command_lag >= _OWN_STALL * sim.limits.watchdog_timeout):
-                        # the last command was read when the plant was that far behind its
-                        # schedule (stamped with a clock that late): its own stall, caught up
-                        # in a burst, not the host's silence
-                        self.counters["watchdog_trips_in_catch_up"] += 1
+                    if sim.watchdog_trips != trips:
+                        silence = read_at - command_read_at
+                        self.counters["host_silence_max_ms"] = max(
+                            self.counters["host_silence_max_ms"], round(silence * 1e3))
+                        if silence < _OWN_STALL * sim.limits.watchdog_timeout:
+                            # the plant did not listen long enough to hear the host's silence:
+                            # it was behind or stalled, and catches up in a burst
+                            self.counters["watchdog_trips_in_catch_up"] += 1
                     if len(sim.changes_applied) != n_applied:  # wall time of this sample
                         self._note_changes(time.time() - (time.monotonic() - deadline))
                     self.counters["samples_produced"] += 1
