@@ -97,19 +97,24 @@ class _Listener:
         """Set one parameter through the plain SetParameters service; its result."""
         cli = self.node.create_client(SetParameters, f"/{MODEL_NODE}/set_parameters")
         self.spin_until(lambda: cli.service_is_ready(), 10.0, "parameter service")
-        fut = cli.call_async(SetParameters.Request(parameters=[self._msg(name, value)]))
-        self.spin_until(fut.done, timeout, f"set {name}")
-        return fut.result().results[0]
+        # a set is idempotent: sent again while the real-time node drops the replies to a
+        # client whose route is still being matched (rosutil.call_idempotent)
+        reply = rosutil.call_idempotent(
+            self.exe, cli, SetParameters.Request(parameters=[self._msg(name, value)]), timeout)
+        assert reply is not None, f"set {name}: no answer in {timeout} s"
+        self.node.destroy_client(cli)
+        return reply.results[0]
 
     def set_atomically(self, values):
         """Set several parameters at once through SetParametersAtomically; the result."""
         cli = self.node.create_client(SetParametersAtomically,
                                       f"/{MODEL_NODE}/set_parameters_atomically")
         self.spin_until(lambda: cli.service_is_ready(), 10.0, "parameter service")
-        fut = cli.call_async(SetParametersAtomically.Request(
-            parameters=[self._msg(k, v) for k, v in values.items()]))
-        self.spin_until(fut.done, 10.0, f"set {sorted(values)}")
-        return fut.result().result
+        reply = rosutil.call_idempotent(self.exe, cli, SetParametersAtomically.Request(
+            parameters=[self._msg(k, v) for k, v in values.items()]), 10.0)
+        assert reply is not None, f"set {sorted(values)}: no answer in 10 s"
+        self.node.destroy_client(cli)
+        return reply.result
 
 
 def test_replayed_bag_residual_at_noise_level(procs, rclpy_context, tmp_path):
@@ -272,9 +277,10 @@ def test_bad_settings_refused_and_predictions_stay_finite(procs, rclpy_context):
         listener.spin_until(get.service_is_ready, 10.0, "get_parameters")
 
         def b_value():
-            fut = get.call_async(GetParameters.Request(names=["A", "B"]))
-            listener.spin_until(fut.done, 10.0, "get A, B")
-            return fut.result().values
+            reply = rosutil.call_idempotent(listener.exe, get,
+                                            GetParameters.Request(names=["A", "B"]), 10.0)
+            assert reply is not None, "get A, B: no answer in 10 s"
+            return reply.values
 
         listener.spin_until(lambda: all(len(v.double_array_value) == 0 for v in b_value()),
                             10.0, "A and B cleared")

@@ -30,6 +30,10 @@ from dvt_model.contract import (
 
 __all__ = ["Monitor"]
 
+RESEND_S = 2.0
+"""A service request unanswered this long is sent again [s] (a reply lost while the route of a
+fresh client is being matched; :func:`dvt_model.rosutil.call_idempotent`)."""
+
 
 class Monitor:
     """A small rclpy node in the launcher (see the module docstring).
@@ -155,13 +159,23 @@ class Monitor:
                     raise LaunchError(f"model node {model_node!r} offers no service {service} "
                                       f"within {timeout:g} s (is it running under that name?)")
                 time.sleep(0.05)
+            # the real-time model node keeps Fast DDS's 100 ms reply wait: a reply to a client
+            # whose route is still being matched is dropped, so the request is sent again
+            # every RESEND_S (a second reset only restarts the learning just begun)
             with self._lock:
                 future = client.call_async(Trigger.Request())
+            sent = time.monotonic()
             while not future.done():
                 check_interrupted()
-                if time.monotonic() > deadline:
+                now = time.monotonic()
+                if now > deadline:
                     raise LaunchError(f"model node {model_node!r} did not answer {service} "
                                       f"within {timeout:g} s")
+                if now - sent > RESEND_S:
+                    with self._lock:
+                        client.remove_pending_request(future)
+                        future = client.call_async(Trigger.Request())
+                    sent = now
                 time.sleep(0.02)
             failure = future.exception()
             answer = future.result() if failure is None else None
