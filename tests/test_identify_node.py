@@ -13,6 +13,7 @@ from std_srvs.srv import Trigger
 from test_model_node import NOISE, _Listener
 
 from conftest import wait_for
+from dvt_model import rosutil
 from dvt_model.hybrid import HybridModel
 from dvt_model.params import load_parameters
 from dvt_model.recording import write_run
@@ -39,9 +40,9 @@ def _bag(path, seed, seconds=6.0):
 def _get(listener, node_name, names):
     cli = listener.node.create_client(GetParameters, f"/{node_name}/get_parameters")
     listener.spin_until(cli.service_is_ready, 10.0, "get_parameters service")
-    fut = cli.call_async(GetParameters.Request(names=names))
-    listener.spin_until(fut.done, 10.0, "get_parameters")
-    return fut.result().values
+    reply = rosutil.call_idempotent(listener.exe, cli, GetParameters.Request(names=names), 10.0)
+    assert reply is not None, f"/{node_name}/get_parameters {names}: no answer in 10 s"
+    return reply.values
 
 
 def _residual_rms(listener, procs, bag):

@@ -470,16 +470,28 @@ def test_change_detector_wiring(procs, rclpy_context, tmp_path):
     assert node.poll() is None
 
 
-def _call_trigger(listener, service, timeout=20.0):
-    """Call a std_srvs/Trigger ``service`` with a real client; its response (bounded waits)."""
+def _call_trigger(listener, service, timeout=20.0, cli=None):
+    """Call a std_srvs/Trigger ``service`` with a real client; its response (bounded waits).
+
+    ``cli``: a client created long before (its reply route matched: the real-time model node
+    drops a reply to a client it has not matched yet, after 100 ms), called once; without one a
+    fresh client sends again while unanswered (:func:`dvt_model.rosutil.call_idempotent`), for
+    a call whose repetition changes nothing (a refusal)."""
     from std_srvs.srv import Trigger
 
-    cli = listener.node.create_client(Trigger, service)
+    fresh = cli is None
+    if fresh:
+        cli = listener.node.create_client(Trigger, service)
     listener.spin_until(cli.service_is_ready, timeout, f"service {service}")
-    fut = cli.call_async(Trigger.Request())
-    listener.spin_until(fut.done, timeout, f"the answer of {service}")
+    if fresh:
+        answer = rosutil.call_idempotent(listener.exe, cli, Trigger.Request(), timeout)
+        assert answer is not None, f"no answer of {service} in {timeout} s"
+    else:
+        fut = cli.call_async(Trigger.Request())
+        listener.spin_until(fut.done, timeout, f"the answer of {service}")
+        answer = fut.result()
     listener.node.destroy_client(cli)
-    return fut.result()
+    return answer
 
 
 def test_reset_detector_service(procs, rclpy_context, tmp_path):
@@ -512,7 +524,12 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
     bag = write_run(tmp_path / "run", stamps[kept], speeds[kept],
                     np.column_stack([im, ib])[kept])
 
+    from std_srvs.srv import Trigger
+
     listener = _Listener(rclpy_context)
+    # created now: by the reset, seconds later, the node has matched its reply route (a reset
+    # is not idempotent, so it is sent once)
+    reset_cli = listener.node.create_client(Trigger, model_reset_detector_service())
     statuses: list[tuple[int, dict[str, str]]] = []
 
     def on_diag(msg):
@@ -557,7 +574,7 @@ def test_reset_detector_service(procs, rclpy_context, tmp_path):
     assert warn["requested_resets"] == "0", warn
     assert warn["anchor_restarts"] == "1", warn  # the start only: the lost 20 ms are no restart
 
-    answer = _call_trigger(listener, model_reset_detector_service())
+    answer = _call_trigger(listener, model_reset_detector_service(), cli=reset_cli)
     assert answer.success, answer.message
     assert answer.message.startswith(RESET_DETECTOR_LOG), answer.message
     assert "reference" in answer.message and "the latched alarm" in answer.message, \

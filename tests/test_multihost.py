@@ -145,6 +145,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from dvt_model import rosutil
+from dvt_model.contract import answer_of
 
 rclpy.init()
 node = rclpy.create_node("probe_b")
@@ -164,12 +165,14 @@ spin_until(lambda: count["n"] >= 50, 30, "samples")
 print(f"SAMPLES {count['n']}", flush=True)
 client = AsyncParameterClient(node, "dvt_model")
 spin_until(lambda: client.services_are_ready(), 20, "model parameter services")
-fut = client.set_parameters([Parameter("reanchor_period", value=2.5)])
-spin_until(fut.done, 10, "set_parameters")
-print(f"PUSHED {fut.result().results[0].successful}", flush=True)
-fut = client.get_parameters(["reanchor_period"])
-spin_until(fut.done, 10, "get_parameters")
-print(f"GOT reanchor_period {fut.result().values[0].double_value}", flush=True)
+# a set of one value and a read are idempotent: sent again while a reply is lost (the
+# real-time model node's 100 ms reply wait, a fresh client across a discovery server)
+spin = lambda s: rclpy.spin_once(node, timeout_sec=s)
+res, _ = answer_of(lambda: client.set_parameters([Parameter("reanchor_period", value=2.5)]),
+                   10, 2.0, wait=spin)
+print(f"PUSHED {res.results[0].successful}", flush=True)
+res, _ = answer_of(lambda: client.get_parameters(["reanchor_period"]), 10, 2.0, wait=spin)
+print(f"GOT reanchor_period {res.values[0].double_value}", flush=True)
 cli = node.create_client(Trigger, "/dvt/identify/run")
 spin_until(lambda: cli.service_is_ready(), 20, "identify service")
 fut = cli.call_async(Trigger.Request())

@@ -247,7 +247,7 @@ def test_an_idempotent_call_is_sent_again_after_a_lost_reply(
 
 
 def test_call_idempotent_rejects_bad_budgets_naming_them() -> None:
-    with pytest.raises(ValueError, match="resend_s=0"):
+    with pytest.raises(ValueError, match="resend_after=0"):
         rosutil.call_idempotent(None, None, None, 1.0, resend_s=0)
     with pytest.raises(ValueError, match="timeout=-1"):
         rosutil.call_idempotent(None, None, None, -1, resend_s=1.0)

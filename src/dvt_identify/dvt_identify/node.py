@@ -54,7 +54,7 @@ from std_srvs.srv import Trigger
 from dvt_identify import supervisor as sv
 from dvt_identify.errors import DvtIdentifyError, SupervisorError
 from dvt_identify.pipeline import model_push, run
-from dvt_identify.push import RESEND_S, answer_of
+from dvt_identify.push import RESEND_S
 from dvt_identify.refit import RefitSettings, plain_value
 from dvt_identify.refit_process import DEFAULT_NICE, RefitWorker
 from dvt_model import rosutil
@@ -75,6 +75,7 @@ from dvt_model.contract import (
     SNAPSHOT_REQUEST_QOS,
     SPEED_NAMES,
     SRV_IDENTIFY_RUN,
+    answer_of,
 )
 from dvt_model.node import VELOCITY, JointStateReader, stamp_of
 
@@ -125,7 +126,7 @@ def push_parameters(client: AsyncParameterClient, values: Mapping[str, Any],
         values: the parameters to set together.
         timeout: seconds to wait for the answer (a busy model node answers after the samples
             queued before the call) [s]; unanswered, the set is sent again every
-            ``min(RESEND_S, timeout / 3)`` s (:func:`dvt_identify.push.answer_of`: a lost
+            ``min(RESEND_S, timeout / 3)`` s (:func:`dvt_model.contract.answer_of`: a lost
             reply; the node takes a repeated set as no change).
         service_timeout: seconds to wait for the node's parameter services [s].
 

@@ -57,10 +57,9 @@ from __future__ import annotations
 
 import json
 import math
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -73,11 +72,17 @@ from dvt_identify.fit import OEFit
 from dvt_identify.metrics import figures
 from dvt_identify.stages import Stage
 from dvt_model.config import check_parameters
-from dvt_model.contract import CURRENT_NAMES, SPEED_NAMES, term_needs_angle, validate_effects
+from dvt_model.contract import (
+    CURRENT_NAMES,
+    SPEED_NAMES,
+    term_needs_angle,
+    validate_effects,
+)
 from dvt_model.errors import DvtModelError
 
 RESEND_S = 5.0
-"""A push not answered within this time [s] is sent again (:func:`answer_of`)."""
+"""A push not answered within this time [s] is sent again
+(:func:`dvt_model.contract.answer_of`: a repeated push is no change)."""
 
 MAX_RELATIVE_STD = 0.5
 """A band parameter whose standard deviation exceeds this fraction of its value (or is not
@@ -443,51 +448,3 @@ def _band(inputs: list[str], index: int) -> int | None:
     return None
 
 
-class Pending(Protocol):
-    """What :func:`answer_of` needs of a request's future (rclpy's ``Future`` and
-    ``concurrent.futures.Future`` both have it)."""
-
-    def done(self) -> bool: ...
-
-    def result(self) -> Any: ...
-
-
-def answer_of(send: Callable[[], Pending], timeout: float, resend_after: float = RESEND_S,
-              poll: float = 0.01) -> tuple[Any, int]:
-    """The answer to an idempotent request, sent again when no answer came within
-    ``resend_after`` seconds.
-
-    A DDS service reply can be lost while the request was served: under load the server's
-    reply writer may not yet have matched a new client's reply reader when the answer is
-    written (rmw_fastrtps waits about 100 ms for it, then drops it). A push is idempotent:
-    the model node applies a set that only repeats the values in use as no change
-    (:func:`dvt_model.config.model_transaction`), so sending it again is safe and its answer
-    says the set is in use. The first request answered wins.
-
-    Args:
-        send: sends the request once and returns its future.
-        timeout: total seconds to wait for an answer [s].
-        resend_after: seconds without an answer before the request is sent again [s].
-        poll: seconds between looks at the futures [s].
-
-    Returns:
-        ``(result, sends)``: the first answered future's result and how many requests were
-        sent.
-
-    Raises:
-        TimeoutError: no answer within ``timeout`` (the message gives the number of sends).
-    """
-    start = time.monotonic()
-    futures = [send()]
-    last = start
-    while True:
-        for future in futures:
-            if future.done():
-                return future.result(), len(futures)
-        now = time.monotonic()
-        if now - start > timeout:
-            raise TimeoutError(f"no answer within {timeout:g} s to {len(futures)} request(s)")
-        if now - last >= resend_after:
-            futures.append(send())
-            last = now
-        time.sleep(poll)

@@ -13,8 +13,9 @@ import pytest
 from dvt_identify.description import load_description
 from dvt_identify.effects import BrakeEngagement, BrakeLockup, make_effect
 from dvt_identify.errors import PushError
-from dvt_identify.push import answer_of, model_node_parameters
+from dvt_identify.push import model_node_parameters
 from dvt_identify.simulation import OEModel
+from dvt_model.contract import answer_of
 
 
 def _stage(effects, values, rel_std=0.01):  # type: ignore[no-untyped-def]

@@ -14,9 +14,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from dvt_model.errors import ContractError
 from dvt_model.laws import LAWS, TERM_LAWS, TORQUE_MAX
@@ -117,6 +118,64 @@ def reply_topic(service: str) -> str:
         raise ContractError(f"service: expected an absolute ROS name such as "
                             f"'/dvt/identify/run', got {service!r}")
     return f"rr{service}Reply"
+
+
+class Pending(Protocol):
+    """What :func:`answer_of` needs of a request's future (rclpy's ``Future`` and
+    ``concurrent.futures.Future`` both have it)."""
+
+    def done(self) -> bool: ...
+
+    def result(self) -> Any: ...
+
+
+def answer_of(send: Callable[[], Pending], timeout: float, resend_after: float,
+              poll: float = 0.01, wait: Callable[[float], object] = time.sleep
+              ) -> tuple[Any, int]:
+    """The answer to an idempotent service request, sent again when no answer came within
+    ``resend_after`` seconds; the first request answered wins.
+
+    A DDS service reply can be lost while the request was served: the server's reply writer
+    may not yet have matched a new client's reply reader when the answer is written, and
+    ``rmw_fastrtps`` waits the writer's ``max_blocking_time`` for it, then drops it
+    (:data:`FASTDDS_DEFAULT_REPLY_WAIT_S` in the real-time nodes, which keep it: a longer wait
+    would stall their samples). A request whose repetition changes nothing (a read, a refusal,
+    a parameter set that repeats the values in use, which the model node takes as no change)
+    is safe to send again.
+
+    Args:
+        send: sends the request once and returns its future.
+        timeout: total seconds to wait for an answer [s].
+        resend_after: seconds without an answer before the request is sent again [s].
+        poll: seconds between looks at the futures [s].
+        wait: called with ``poll`` between looks: ``time.sleep`` while another thread spins
+            the client's node, or one spin of its executor.
+
+    Returns:
+        ``(result, sends)``: the first answered future's result and how many requests were
+        sent.
+
+    Raises:
+        TimeoutError: no answer within ``timeout`` (the message gives the number of sends).
+        ValueError: ``timeout``, ``resend_after`` or ``poll`` not > 0.
+    """
+    if not (timeout > 0 and resend_after > 0 and poll > 0):
+        raise ValueError(f"answer_of: expected timeout, resend_after and poll > 0 s, got "
+                         f"timeout={timeout!r}, resend_after={resend_after!r}, poll={poll!r}")
+    start = time.monotonic()
+    futures = [send()]
+    last = start
+    while True:
+        for future in futures:
+            if future.done():
+                return future.result(), len(futures)
+        now = time.monotonic()
+        if now - start > timeout:
+            raise TimeoutError(f"no answer within {timeout:g} s to {len(futures)} request(s)")
+        if now - last >= resend_after:
+            futures.append(send())
+            last = now
+        wait(poll)
 
 
 REPLY_WAIT_SERVICES: tuple[str, ...] = (SRV_IDENTIFY_RUN,)

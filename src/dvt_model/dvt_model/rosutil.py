@@ -13,7 +13,6 @@ import os
 import signal
 import sys
 import tempfile
-import time
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -37,6 +36,7 @@ from dvt_model.contract import (
     FASTDDS_PROFILES_ENV,
     REPLY_WAIT_S,
     QosSpec,
+    answer_of,
     reply_wait_profile,
 )
 from dvt_model.contract import (
@@ -205,39 +205,26 @@ def init(args: list[str] | None = None, *, reply_wait: Sequence[str] = ()) -> li
 
 def call_idempotent(executor: Any, client: Any, request: Any, timeout: float,
                     resend_s: float = 2.0) -> Any | None:
-    """Call ``client`` with an idempotent ``request`` (a state or parameter read, a refused
-    transition), spinning ``executor``; send it again every ``resend_s`` seconds while no
-    reply came, and return the first reply, or ``None`` after ``timeout`` seconds.
-
-    A real-time server (the driver, the model node) keeps Fast DDS's default reply wait
-    (:data:`~dvt_model.contract.FASTDDS_DEFAULT_REPLY_WAIT_S`): while a fresh client's
-    response reader is still being matched, the server drops its reply (``failed to send
-    response``), and a single request would wait its whole budget for nothing. Sending again
-    once the route is matched costs the server one more answer.
+    """Call ``client`` with a ``request`` whose repetition changes nothing (a read, a refusal,
+    a set of the values in use), spinning ``executor``: sent again every ``resend_s`` seconds
+    while no reply came (:func:`~dvt_model.contract.answer_of`: a real-time server drops its
+    reply to a client whose route it has not matched yet); the first reply, or ``None`` after
+    ``timeout`` seconds. Requests left unanswered are withdrawn from the client.
 
     Raises:
         ValueError: ``timeout`` or ``resend_s`` not > 0.
     """
-    if not (timeout > 0 and resend_s > 0):
-        raise ValueError(f"call_idempotent: expected timeout > 0 and resend_s > 0 s, got "
-                         f"timeout={timeout!r}, resend_s={resend_s!r}")
-    deadline = time.monotonic() + timeout
     futures: list[Any] = []
+
+    def send() -> Any:
+        futures.append(client.call_async(request))
+        return futures[-1]
     try:
-        while True:
-            now = time.monotonic()
-            if now >= deadline:
-                return None
-            if client.service_is_ready():
-                futures.append(client.call_async(request))
-            until = min(deadline, now + resend_s)
-            while time.monotonic() < until:
-                executor.spin_once(timeout_sec=0.01)
-                done = next((f for f in futures if f.done()), None)
-                if done is not None:
-                    return done.result()
-                if not futures and client.service_is_ready():
-                    break  # the service appeared: send now
+        reply, _ = answer_of(send, timeout, resend_s, poll=0.01,
+                             wait=lambda s: executor.spin_once(timeout_sec=s))
+        return reply
+    except TimeoutError:
+        return None
     finally:
         for f in futures:  # done ones too: their own removal runs on a later spin
             client.remove_pending_request(f)

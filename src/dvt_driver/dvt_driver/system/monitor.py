@@ -25,6 +25,7 @@ from dvt_model.contract import (
     IDENTIFY_EPISODE,
     JOINT_STATES,
     MODEL_JOINT_STATES,
+    answer_of,
     model_reset_detector_service,
 )
 
@@ -32,7 +33,7 @@ __all__ = ["Monitor"]
 
 RESEND_S = 2.0
 """A service request unanswered this long is sent again [s] (a reply lost while the route of a
-fresh client is being matched; :func:`dvt_model.rosutil.call_idempotent`)."""
+fresh client is being matched; :func:`dvt_model.contract.answer_of`)."""
 
 
 class Monitor:
@@ -159,29 +160,29 @@ class Monitor:
                     raise LaunchError(f"model node {model_node!r} offers no service {service} "
                                       f"within {timeout:g} s (is it running under that name?)")
                 time.sleep(0.05)
-            # the real-time model node keeps Fast DDS's 100 ms reply wait: a reply to a client
-            # whose route is still being matched is dropped, so the request is sent again
-            # every RESEND_S (a second reset only restarts the learning just begun)
-            with self._lock:
-                future = client.call_async(Trigger.Request())
-            sent = time.monotonic()
-            while not future.done():
+            # a reset whose reply is lost (the real-time model node's 100 ms reply wait, a
+            # fresh client) is sent again: a second reset only restarts the learning just begun
+            def send() -> Any:
+                with self._lock:
+                    return client.call_async(Trigger.Request())
+
+            def wait(poll: float) -> None:
                 check_interrupted()
-                now = time.monotonic()
-                if now > deadline:
-                    raise LaunchError(f"model node {model_node!r} did not answer {service} "
-                                      f"within {timeout:g} s")
-                if now - sent > RESEND_S:
-                    with self._lock:
-                        client.remove_pending_request(future)
-                        future = client.call_async(Trigger.Request())
-                    sent = now
-                time.sleep(0.02)
-            failure = future.exception()
-            answer = future.result() if failure is None else None
+                time.sleep(poll)
+            try:
+                answer, _ = answer_of(send, max(deadline - time.monotonic(), 1e-3), RESEND_S,
+                                      poll=0.02, wait=wait)
+            except TimeoutError:
+                raise LaunchError(f"model node {model_node!r} did not answer {service} "
+                                  f"within {timeout:g} s") from None
+            except (LaunchError, LaunchInterruptedError):
+                raise
+            except Exception as failure:  # the call itself failed (rclpy sets it on the future)
+                raise LaunchError(f"model node {model_node!r}: the call of {service} failed "
+                                  f"({failure!r})") from None
             if answer is None:
                 raise LaunchError(f"model node {model_node!r}: the call of {service} failed "
-                                  f"({failure!r})")
+                                  "(no response)")
             if not answer.success:
                 raise LaunchError(f"model node {model_node!r} refused {service}: "
                                   f"{answer.message}")
