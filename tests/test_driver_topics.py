@@ -32,6 +32,7 @@ from std_msgs.msg import Float64, Int8
 from std_srvs.srv import Trigger
 
 from conftest import wait_for
+from dvt_driver.link.settings import DEFAULT_SETTINGS
 from dvt_model import contract, rosutil
 from dvt_model.contract import CURRENTS, DIAGNOSTICS, JOINT_STATES
 from dvt_model.dynamics import rigid_model
@@ -140,20 +141,16 @@ class Harness:
     # -- driver API -----------------------------------------------------------------------
 
     def change(self, label: str = "", transition_id: int = 0) -> bool:
-        """Request a transition; its success. A transition is not idempotent: when its reply
-        is lost, the lifecycle state read afterwards says whether it was applied (a changed
-        state), and only an unchanged one is asked again (a refusal changes nothing)."""
+        """Request a transition; its success (a lost reply reconciled by the lifecycle state:
+        :func:`dvt_model.rosutil.change_state`)."""
         req = ChangeState.Request()
         req.transition.label = label
         req.transition.id = transition_id
-        before = self.state()
         self.spin_until(self.cli_change.service_is_ready, 20.0, "service change_state")
-        reply = rosutil.call_idempotent(self.exe, self.cli_change, req, 3.0, resend_s=3.0)
-        if reply is None and self.state() != before:
-            return True
-        if reply is None:
-            reply = self.call(self.cli_change, req)
-        return bool(reply.success)
+        ok = rosutil.change_state(self.exe, self.cli_change, req, 10.0, self.state)
+        if ok is None:
+            pytest.fail(f"no answer of change_state {label or transition_id} in 10 s")
+        return ok
 
     def state(self) -> str:
         return str(self.call(self.cli_get, GetState.Request()).current_state.label)
@@ -430,7 +427,7 @@ def test_commands_limits_and_watchdog(procs: Any, harness: Harness, tmp_path: Pa
     h.diag_report(lambda v: True, 5.0, "a last driver report")
     gap_ms = float(h.diag_value("command_gap_max_ms"))
     absent_ms = float(h.diag_value("io_cycle_max_ms"))
-    keepalive_ms = 20.0
+    keepalive_ms = 1e3 / DEFAULT_SETTINGS["keepalive_rate_hz"]
     assert 0.0 < gap_ms <= keepalive_ms + absent_ms + 10.0, (gap_ms, absent_ms)
     # (2) A controller trip is the plant's own when the plant had not been listening long
     # enough to hear 90 % of the timeout of silence (it was behind or stalled: a loaded 2-core

@@ -13,7 +13,8 @@ import os
 import signal
 import sys
 import tempfile
-from collections.abc import Iterable, Sequence
+import time
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import rclpy
@@ -228,3 +229,31 @@ def call_idempotent(executor: Any, client: Any, request: Any, timeout: float,
     finally:
         for f in futures:  # done ones too: their own removal runs on a later spin
             client.remove_pending_request(f)
+
+
+TRANSITION_GOAL = {"configure": "inactive", "activate": "active", "deactivate": "inactive",
+                   "cleanup": "unconfigured", "shutdown": "finalized"}
+"""The lifecycle state each transition (by label) ends in when it succeeds."""
+
+
+def change_state(executor: Any, client: Any, request: Any, timeout: float,
+                 state: Callable[[], str | None], resend_s: float = 3.0) -> bool | None:
+    """Request a lifecycle transition (``lifecycle_msgs/srv/ChangeState``) from a real-time
+    node, spinning ``executor``; its success, or ``None`` without an answer in ``timeout``.
+
+    A transition is not idempotent, so a lost reply (:func:`call_idempotent`) is not simply
+    sent again: after ``resend_s`` without one, ``state()`` (the node's lifecycle state, from
+    its ``get_state`` service or its diagnostics; ``None`` if unknown) says whether it was
+    applied, which counts as success; only one not applied is asked again (a refusal changes
+    nothing).
+    """
+    goal = TRANSITION_GOAL.get(request.transition.label)
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        reply = call_idempotent(executor, client, request,
+                                max(min(resend_s, end - time.monotonic()), 1e-3), resend_s)
+        if reply is not None:
+            return bool(reply.success)
+        if goal is not None and state() == goal:
+            return True
+    return None

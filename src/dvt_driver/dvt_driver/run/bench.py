@@ -67,14 +67,6 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / ticks
 
 
-RESEND_S = 3.0
-"""A lifecycle transition unanswered this long is checked against the driver's diagnostics
-and, when not applied, asked again [s]."""
-_GOAL_STATE = {"configure": "inactive", "activate": "active", "deactivate": "inactive",
-               "cleanup": "unconfigured", "shutdown": "finalized"}
-"""The lifecycle state each transition (by label) ends in when it succeeds."""
-
-
 class _BenchNode:
     """Lifecycle client and diagnostics listener of the bench (rclpy, own context)."""
 
@@ -112,33 +104,23 @@ class _BenchNode:
         """Request lifecycle transition ``label`` (by label: refused, never fatal)."""
         from lifecycle_msgs.msg import Transition
 
+        from dvt_model import rosutil
+
         if not self.change.wait_for_service(timeout_sec=timeout):
             raise LaunchError(f"/{DRIVER}/change_state not available after {timeout:g} s")
         req = self._ChangeState.Request(transition=Transition(label=label))
-        goal = _GOAL_STATE.get(label)
-        end = time.monotonic() + timeout
-        res = None
-        while res is None and time.monotonic() < end:
-            # the driver keeps Fast DDS's 100 ms reply wait (real time): a reply to a client
-            # whose route is still being matched is dropped. A transition is not idempotent,
-            # so after RESEND_S without a reply its diagnostics say whether it was applied
-            # (the goal state), and only an unapplied one is asked again
-            fut = self.change.call_async(req)
-            wait_end = min(end, time.monotonic() + RESEND_S)
-            while not fut.done() and time.monotonic() < wait_end:
-                self.executor.spin_once(timeout_sec=0.05)
-            if fut.done():
-                res = fut.result()
-                break
-            self.change.remove_pending_request(fut)
-            seen = self.diag_count
-            while self.diag_count == seen and time.monotonic() < end:
-                self.executor.spin_once(timeout_sec=0.05)
-            if goal is not None and self.diag.get("lifecycle_state") == goal:
-                return
-        if res is None or not res.success:
+        ok = rosutil.change_state(self.executor, self.change, req, timeout, self._diag_state)
+        if not ok:
             raise LaunchError(f"driver transition {label!r} failed"
-                              + ("" if res is not None else f" (no answer in {timeout:g} s)"))
+                              + ("" if ok is not None else f" (no answer in {timeout:g} s)"))
+
+    def _diag_state(self, timeout: float = 3.0) -> str | None:
+        """The driver's lifecycle state in its next diagnostics report (``None``: none came)."""
+        seen = self.diag_count
+        end = time.monotonic() + timeout
+        while self.diag_count == seen and time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+        return self.diag.get("lifecycle_state") if self.diag_count > seen else None
 
     def recorder_subscribed(self) -> bool:
         return all(any(i.node_name == "dvt_recorder"
