@@ -21,6 +21,9 @@ each, two recordings at a time, and prints, per output over all recordings:
   with the node's defaults (before the colour, with a colour fitted on less than
   ``colour_s`` of history while it grows, and with the full one), with the one-sided 95 %
   Poisson bounds, against the design;
+* the first minute's allowance (before the colour) on white residual, where there is no
+  colour to allow for: its thresholds over the ARMA's own design, and the expected delay to a
+  ``shift_sigma`` step with and without it;
 * a design tried and not kept (``--trial``): ``h`` for whitened increments of long-run
   variance ``lam`` (``k`` and ``h`` act divided by ``sqrt(lam)``), ``lam`` from
   :data:`TRIAL_BATCHES` batch means of the whitened reference window (at least 1) and the rate
@@ -58,6 +61,8 @@ from scipy.stats import chi2
 LEAD_S = 2.0  # the model node starts this long after the motor [s]
 CURRENT_A = 4.0
 SETTLE_BLOCKS = 300  # blocks left out after the start (the node's settle_s)
+WHITE_WINDOWS = 200
+"""Reference windows of white residual on which the first minute's allowance is costed."""
 TRIAL_BATCHES = 25
 """Batches of the whitened reference window in the ``--trial`` design."""
 
@@ -106,23 +111,10 @@ def trial_h(k: float, rate: float, learn: int, lam: float, dof: int) -> float:
     """The ``--trial`` threshold: the smallest ``h`` whose false-alarm rate per sample, averaged
     over 16 equal-probability points of ``lam``'s scale-inverse-chi2 uncertainty, is at most
     ``rate``."""
-    from dvt_model.detect import _rates
+    from dvt_model.detect import design_threshold
 
     q = (np.arange(16) + 0.5) / 16
-    lams = lam * dof / chi2.ppf(1.0 - q, dof)
-
-    def rates(h: np.ndarray) -> np.ndarray:
-        return np.mean([_rates(k / math.sqrt(v), h / math.sqrt(v), learn) for v in lams], axis=0)
-
-    hi = 8.0
-    while rates(np.asarray([hi]))[0] > rate:
-        hi *= 4.0
-    lo = 0.0
-    for _ in range(3):
-        grid = np.linspace(lo, hi, 65)
-        j = int(np.argmax(rates(grid) <= rate))
-        lo, hi = float(grid[max(j - 1, 0)]), float(grid[j])
-    return hi
+    return design_threshold(k, rate, learn, list(lam * dof / chi2.ppf(1.0 - q, dof)))
 
 
 def count_alarms(x: np.ndarray, trial: bool) -> tuple[int, int, list[float], list[float]]:
@@ -315,6 +307,24 @@ def main() -> int:
                 "starts": starts if learn_s is None else len(recs),
                 "per_hour_95": list(rate_bounds(alarms[phase], hours)),
                 "design_per_hour": design})
+    # what the first minute's allowance costs where there is no colour to allow for
+    rng = np.random.default_rng(1)
+    pairs = []
+    for _ in range(WHITE_WINDOWS):
+        w = rng.standard_normal(L)
+        pairs.append((reference_from_window(w, cfg, None, None), reference_from_window(w, cfg)))
+    ratio = np.asarray([first.h / arma.h for first, arma in pairs])
+    delay = [float(np.median([(r.h + 1.166) / (cfg.shift_sigma - r.k) / cfg.sample_rate_hz
+                              for r in refs])) for refs in zip(*pairs, strict=True)]
+    figures["first_minute_white"] = {
+        "windows": WHITE_WINDOWS, "h_ratio_quantiles_10_50_90_100":
+        np.quantile(ratio, [0.1, 0.5, 0.9, 1.0]).round(3).tolist(),
+        "delay_s_median_with_without": delay}
+    say(f"\nbefore the colour, on {WHITE_WINDOWS} windows of white residual: h over the ARMA's "
+        "own design, quantiles 10/50/90/100 %: "
+        + " ".join(f"{v:.2f}" for v in np.quantile(ratio, [0.1, 0.5, 0.9, 1.0]))
+        + f"; expected delay to a {cfg.shift_sigma:g} sigma step (Siegmund, median) "
+        f"{delay[0]:.2f} s with the allowance, {delay[1]:.2f} s without")
     if a.trial:
         rate_hz = cfg.sample_rate_hz
         white = np.random.default_rng(1).standard_normal(

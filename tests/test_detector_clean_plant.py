@@ -72,6 +72,14 @@ MAX_FALSE_RUNS = 4
 probability 0.009 at the rate measured on 185 plants (6 of 185, 3.2 %), 0.37 at 10 %, 0.74 at
 15 % and 0.92 at 20 % (binomial)."""
 STEP_SEED = 4000  # first plant seed of the step runs; fixed before the first run
+FIRST_SEED = 6000  # first plant seed of the starts before the colour; fixed before the first run
+FIRST_STARTS = 90  # node starts, each tested until just before its first colour
+FIRST_TEST_S = 39.0  # tested per start [s]: the first colour comes 60 s into the history
+FIRST_MAX_ALARMS = 5
+"""Most false alarms allowed in the ``FIRST_STARTS`` starts before the colour (about 1 h of
+testing): 6 or more fail, with probability @P1@ at the @R1@/h measured on 400 starts of other
+plants (``scripts/results.sh detector_first``, docs/loop.md "Limits"), @P2@ at its one-sided
+95 % bound @R2@/h, and 0.95 at the 10.8/h of the ARMA's own design before (Poisson)."""
 MAX_DELAY = 3.0  # detection stamp - true step [s] (as tests/test_change_detection.py)
 LATE_TOL = 0.25  # latest estimated change time after the true one [s] (the same)
 WITHIN = (-3.0, LATE_TOL)  # the window the estimate falls in in most runs [s]
@@ -170,6 +178,34 @@ def test_false_alarm_rate_on_the_clean_simulated_plant_meets_the_design() -> Non
                 f"{name} at {stamp:.2f} s{'' if c else ' (before the full colour)'}"
                 for stamp, name, c in where))
     assert lower <= design, (alarms, hours)
+
+
+def first_minute(seed: int) -> tuple[int, float]:
+    """A node start with the defaults, tested ``FIRST_TEST_S`` before its first colour:
+    (false alarms, tested seconds)."""
+    alarms, _, _, before = node_path(seed, None, FIRST_TEST_S)
+    return len(alarms), before
+
+
+def test_false_alarm_rate_before_the_colour_allows_for_what_the_window_cannot_see() -> None:
+    """The detector's first minute after a start (each reference window whitened by its own
+    ARMA(1, 1), the threshold designed over the long-run variance ratio the window measures and
+    its uncertainty, ``dvt_model.detect.long_run_spread``): at most ``FIRST_MAX_ALARMS`` false
+    alarms in ``FIRST_STARTS`` starts of independent plants. Without the allowance (the
+    ARMA's design alone) this residual raised 10.8/h (``docs/results/detector_starts.json`` at
+    9419efd): the test fails on it with probability 0.95. The design (0.25/h) is not met before
+    the colour (docs/loop.md "Limits")."""
+    gc.freeze()  # a forked worker never finalises what it inherited
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("fork")) as pool:
+        out = list(pool.map(first_minute, range(FIRST_SEED, FIRST_SEED + FIRST_STARTS)))
+    gc.unfreeze()
+    alarms = sum(a for a, _ in out)
+    hours = sum(t for _, t in out) / 3600.0
+    lower, upper = rate_bounds(alarms, hours)
+    print(f"\nbefore the colour: {alarms} false alarms in {hours:.2f} h ({FIRST_STARTS} starts): "
+          f"{alarms / hours:.2f}/h (one-sided 95 %: {lower:.2f} to {upper:.2f}/h)")
+    assert hours >= 0.9 * FIRST_STARTS * FIRST_TEST_S / 3600.0, hours  # tested, not learning
+    assert alarms <= FIRST_MAX_ALARMS, (alarms, hours)
 
 
 def test_change_time_estimate_of_a_friction_step() -> None:

@@ -63,7 +63,11 @@ across alarms and :meth:`~ChangeDetector.reset`; an alarm removes the history fr
 estimated change time on, a reset the chunk in progress, a gap or a non-finite sample ends a
 chunk (one shorter than ``10 x`` the longest lag is dropped). Before
 the first fit (the first chunk after a start) the detector runs with each window's
-ARMA(1, 1), and its false-alarm rate there is that design's on the residual at hand.
+ARMA(1, 1), which 20 s cannot make fit a residual of several time scales: there ``h`` is
+designed over the long-run variance ratio the window's own whitened residual shows and its
+sampling uncertainty (:func:`long_run_spread`; the rate averaged over 16 equal-probability
+points), higher than the ARMA's design by itself (docs/loop.md "Limits"). With
+``colour_s`` 0 (no colour ever) each window keeps the ARMA's design.
 
 On an alarm the detector returns an :class:`Alarm` (detection stamp, the estimated change time =
 the stamp of the first sample after the CUSUM's last zero, output, direction, estimated shift),
@@ -360,18 +364,29 @@ def false_alarm_rate(k: float, h: float, learn_samples: int) -> float:
     return float(_rates(k, np.asarray([h], dtype=float), learn_samples)[0])
 
 
-def design_threshold(k: float, rate_per_sample: float, learn_samples: int) -> float:
-    """Smallest ``h`` (to 0.1 %) whose :func:`false_alarm_rate` is at most ``rate_per_sample``.
+def design_threshold(k: float, rate_per_sample: float, learn_samples: int,
+                     lams: Sequence[float] = (1.0,)) -> float:
+    """Smallest ``h`` (to 0.1 %) whose :func:`false_alarm_rate` is at most ``rate_per_sample``;
+    with several ``lams`` (long-run variance ratios of the whitened increments, each at least
+    1) the rate averaged over them (the CUSUM acts as on unit increments with ``k`` and ``h``
+    divided by ``sqrt(lam)``).
 
-    Two vectorised grid passes (about 0.2 ms), cheap enough for the end of a reference window.
+    Two vectorised grid passes (about 0.2 ms per ``lam``), cheap enough for the end of a
+    reference window.
     """
+    roots = [math.sqrt(v) for v in lams]
+
+    def rates(h: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(np.mean([_rates(k / r, h / r, learn_samples) for r in roots], axis=0),
+                          dtype=float)
+
     hi = 8.0
-    while _rates(k, np.asarray([hi]), learn_samples)[0] > rate_per_sample and hi < 1e6:
+    while rates(np.asarray([hi]))[0] > rate_per_sample and hi < 1e6:
         hi *= 4.0
     lo = 0.0
     for _ in range(3):
         grid = np.linspace(lo, hi, 65)
-        ok = _rates(k, grid, learn_samples) <= rate_per_sample
+        ok = rates(grid) <= rate_per_sample
         j = int(np.argmax(ok)) if ok.any() else grid.size - 1
         lo, hi = float(grid[max(j - 1, 0)]), float(grid[j])
         if hi - lo <= 1e-3 * hi:
@@ -423,8 +438,8 @@ def ar_by_aic(acov: NDArray[np.float64], n: int, max_order: int) -> NDArray[np.f
 
 
 def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
-                          colour: NDArray[np.float64] | None = None, lam: float = 1.0
-                          ) -> Reference:
+                          colour: NDArray[np.float64] | None = None,
+                          lam: float | None = 1.0) -> Reference:
     """Learn one output's :class:`Reference` from its reference window (1-D, [rad/s]).
 
     ARMA(1, 1) by the method of moments on the winsorised, centred window: ``phi`` from the
@@ -451,7 +466,7 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
     n = c.size
     if colour is not None:
         return _ar_reference(window, c, level, mad, np.asarray(colour, dtype=float), config,
-                             lam)
+                             1.0 if lam is None else lam)
     # elementwise products, not BLAS dot: no thread pool wakes up inside the 1 kHz loop
     den = float(np.sum(c * c))
     phi = 0.0
@@ -481,26 +496,51 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
         sigma_e = max(abs(level) * 1e-9, 1e-12)  # a constant residual: any change alarms
     sigma = mad if mad > 0 else sigma_e
     gain = (1.0 - phi) / (1.0 + theta)  # steady-state response of a to a step in r
-    k, h, arl0_s = _design(sigma, sigma_e, gain, config)
+    # no colour yet (lam None): allow for the slow colour the window's own whitening may
+    # leave, over what the window can say about it (docs/loop.md "Limits", the first minute)
+    lams = long_run_spread(a, config.sample_rate_hz) if lam is None else (lam,)
+    lam = max(1.0, long_run_ratio(a, config.sample_rate_hz) if lam is None else lam)
+    k, h, arl0_s = _design(sigma, sigma_e, gain, config, lams)
     return Reference(level=level, phi=phi, theta=theta, sigma_e=sigma_e, sigma=sigma, k=k,
                      h=h, arl0_s=arl0_s, last_r=float(window[-1]),
-                     last_a=float(a[-1]) if a.size else 0.0, gain=gain)
+                     last_a=float(a[-1]) if a.size else 0.0, gain=gain, lam=lam)
 
 
 def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig,
-            lam: float = 1.0) -> tuple[float, float, float]:
+            lams: Sequence[float] = (1.0,)) -> tuple[float, float, float]:
     """``k``, ``h`` and one side's designed mean time between false alarms [s] of an output
     whose residual scale is ``sigma``, innovation scale ``sigma_e`` and step gain ``gain``;
-    with ``lam`` (at least 1) above 1, ``h`` is designed for whitened increments of long-run
-    variance ``lam`` (the CUSUM acts as on unit increments with ``k`` and ``h`` divided by
-    ``sqrt(lam)``)."""
+    with ``lams`` (each at least 1) other than 1, ``h`` is designed for whitened increments of
+    long-run variance ``lam`` (the CUSUM acts as on unit increments with ``k`` and ``h``
+    divided by ``sqrt(lam)``), the false-alarm rate averaged over the ``lams`` given (equal
+    weights: the points of its uncertainty, :func:`long_run_spread`)."""
     k = 0.5 * config.shift_sigma * sigma * gain / sigma_e
     n_sides = 2 * len(config.names)
     rate = 1.0 / (config.false_alarm_period_s * config.sample_rate_hz * n_sides)
-    root = math.sqrt(lam)
-    h = design_threshold(k / root, 2.0 * rate, config.learn_samples)
-    arl_side = 1.0 / (0.5 * false_alarm_rate(k / root, h, config.learn_samples))
-    return k, h * root, arl_side / config.sample_rate_hz
+    lams = [max(float(v), 1.0) for v in lams]
+    h = design_threshold(k, 2.0 * rate, config.learn_samples, lams)
+    side = float(np.mean([false_alarm_rate(k / math.sqrt(v), h / math.sqrt(v),
+                                           config.learn_samples) for v in lams]))
+    return k, h, 1.0 / (0.5 * side) / config.sample_rate_hz
+
+
+def _batch_ratios(z: NDArray[np.float64], sample_rate_hz: float) -> list[tuple[float, int]]:
+    """``(B mean square of the centred means of B samples / variance, number of means)`` of
+    ``z`` (1-D) per batch length of :data:`LRV_BATCHES_S` with at least 4 batches."""
+    x = np.asarray(z, dtype=float)
+    x = x - float(np.mean(x)) if x.size else x
+    var = float(np.mean(x * x)) if x.size else 0.0
+    out: list[tuple[float, int]] = []
+    if not var > 0:
+        return out
+    for secs in LRV_BATCHES_S:
+        b = max(1, round(secs * sample_rate_hz))
+        n = x.size // b
+        if n < 4:
+            break
+        m = x[: n * b].reshape(n, b).mean(axis=1)
+        out.append((b * float(np.mean(m * m)) / var, n))
+    return out
 
 
 def long_run_ratio(z: NDArray[np.float64], sample_rate_hz: float) -> float:
@@ -508,20 +548,34 @@ def long_run_ratio(z: NDArray[np.float64], sample_rate_hz: float) -> float:
     batch lengths :data:`LRV_BATCHES_S` of ``B`` times the mean square of its centred means of
     ``B`` samples over its variance (1 for white noise), at least 1; 1 when the series has
     fewer than 4 batches of the shortest length."""
-    x = np.asarray(z, dtype=float)
-    x = x - float(np.mean(x)) if x.size else x
-    var = float(np.mean(x * x)) if x.size else 0.0
-    if not var > 0:
-        return 1.0
-    out = 1.0
-    for secs in LRV_BATCHES_S:
-        b = max(1, round(secs * sample_rate_hz))
-        n = x.size // b
-        if n < 4:
-            break
-        m = x[: n * b].reshape(n, b).mean(axis=1)
-        out = max(out, b * float(np.mean(m * m)) / var)
-    return out
+    return max([1.0, *(r for r, _ in _batch_ratios(z, sample_rate_hz))])
+
+
+SPREAD_POINTS = 16
+"""Equal-probability points of the long-run variance ratio's uncertainty in
+:func:`long_run_spread`."""
+SPREAD_MIN_MEANS = 10
+"""Fewest batch means a ratio of :func:`long_run_spread` is measured on (5 means of 4 s in a
+20-s window put one threshold in ten above 15 times the white one)."""
+
+
+def long_run_spread(z: NDArray[np.float64], sample_rate_hz: float) -> tuple[float, ...]:
+    """The long-run variance ratio of ``z`` (1-D, whitened) with its sampling uncertainty, for
+    a threshold that must hold whatever the ratio the series is consistent with (the
+    detector's reference windows before it has a colour: 20 s cannot tell a slow wander from
+    noise): :data:`SPREAD_POINTS` equal-probability points of the scale-inverse-chi2
+    distribution of the largest batch-means ratio of :func:`long_run_ratio` over the batch
+    lengths with at least :data:`SPREAD_MIN_MEANS` means, on its number of means minus 1
+    degrees of freedom, each at least 1 (``(1.0,)`` when nothing can be measured)."""
+    from scipy.stats import chi2
+
+    ratios = [r for r in _batch_ratios(z, sample_rate_hz) if r[1] >= SPREAD_MIN_MEANS]
+    if not ratios:
+        return (1.0,)
+    lam, n = max(ratios)
+    dof = n - 1
+    q = (np.arange(SPREAD_POINTS) + 0.5) / SPREAD_POINTS
+    return tuple(max(1.0, float(v)) for v in lam * dof / chi2.ppf(1.0 - q, dof))
 
 
 def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: float,
@@ -540,7 +594,7 @@ def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: fl
     # Yule-Walker on biased autocovariances is stationary: sum(a_j) < 1
     gain = max(1.0 - float(np.sum(coef)), 1e-6)
     lam = max(float(lam), 1.0)
-    k, h, arl0_s = _design(sigma, sigma_e, gain, config, lam)
+    k, h, arl0_s = _design(sigma, sigma_e, gain, config, (lam,))
     return Reference(level=level, phi=0.0, theta=0.0, sigma_e=sigma_e, sigma=sigma, k=k, h=h,
                      arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain, lam=lam)
 
@@ -615,6 +669,7 @@ class ChangeDetector:
         self._colour_fit_n = 0  # samples the latest colour was fitted on
         self._colour_lam = [1.0] * self.n  # its whitening's long-run variance ratio
         self._colour_used_n = 0  # ... and the colour the reference in use whitens by
+        self._first_lam: float | None = None if self._P else 1.0
         self._colour_rev: list[NDArray[np.float64]] = []
         self._order = 0
         self._ring = np.zeros((self.n, 2 * max(self._P, 1)))
@@ -913,7 +968,8 @@ class ChangeDetector:
         colour = self._colour
         refs = [reference_from_window(np.asarray(self._buf[i]), self.config,
                                       None if colour is None else colour[i],
-                                      self._colour_lam[i] if colour is not None else 1.0)
+                                      self._colour_lam[i] if colour is not None else
+                                      self._first_lam)
                 for i in range(self.n)]
         self.references = refs
         if colour is not None:

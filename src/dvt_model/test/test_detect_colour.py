@@ -15,6 +15,7 @@ from dvt_model.detect import (
     ar_by_aic,
     lagged_products,
     long_run_ratio,
+    long_run_spread,
     reference_from_window,
 )
 from dvt_model.errors import ParameterError
@@ -128,6 +129,44 @@ def test_long_run_ratio_is_one_for_white_and_large_for_slow_colour() -> None:
     assert long_run_ratio(slow_and_white(rng, 60_000, 1)[:, 0], RATE) > 20.0
     assert long_run_ratio(np.zeros(1000), RATE) == 1.0  # nothing to measure
     assert long_run_ratio(rng.standard_normal(150), RATE) == 1.0  # fewer than 4 batches
+
+
+def test_long_run_spread_is_the_ratio_with_its_uncertainty_on_ten_means_or_more() -> None:
+    rng = np.random.default_rng(10)
+    white = rng.standard_normal(2000)  # 20 s at 100 Hz: 40, 20, 10 and 5 means
+    spread = long_run_spread(white, RATE)
+    assert len(spread) == 16 and all(v >= 1.0 for v in spread)
+    assert list(spread) == sorted(spread)  # equal-probability points, in order
+    slow = slow_and_white(rng, 2000, 1)[:, 0]
+    assert np.median(long_run_spread(slow, RATE)) > 3.0 * np.median(spread)
+    # the 4-s batches (5 means) are left out: a ratio on them alone cannot count
+    assert long_run_spread(rng.standard_normal(500), RATE) != (1.0,)  # 10 means of 0.5 s
+    assert long_run_spread(rng.standard_normal(450), RATE) == (1.0,)  # 9 means at most
+    assert long_run_spread(np.zeros(2000), RATE) == (1.0,)
+
+
+def test_before_the_colour_a_window_allows_for_the_colour_it_cannot_see() -> None:
+    """Before its first colour the detector designs each window's threshold over the long-run
+    variance ratio that window measures and its uncertainty (higher than the ARMA(1, 1)
+    design alone); with ``colour_s`` 0 (no colour ever) the ARMA(1, 1) design holds as it
+    is."""
+    rng = np.random.default_rng(11)
+    x = 0.5 * rng.standard_normal((round(30 * RATE), 2))
+    for phi in (0.95, 0.98, 0.993):  # three time scales (0.2, 0.5, 1.4 s), as the plant's
+        x += lfilter([1.0], [1.0, -phi], rng.standard_normal((x.shape[0] + 3000, 2))
+                     * math.sqrt(1 - phi * phi), axis=0)[3000:]
+    got = []
+    for colour_s in (300.0, 0.0):
+        det = ChangeDetector(DetectorConfig(sample_rate_hz=RATE, colour_s=colour_s).validated())
+        for j, row in enumerate(x.tolist()):
+            det.update(j / RATE, row)
+        got.append(det.references)
+    cfg = DetectorConfig(sample_rate_hz=RATE).validated()
+    plain = [reference_from_window(x[:cfg.learn_samples, i], cfg) for i in range(2)]
+    assert [r.h for r in got[1]] == [r.h for r in plain] and all(r.lam == 1.0 for r in got[1])
+    for before, arma in zip(got[0], plain, strict=True):
+        assert before.k == arma.k and before.lam >= 1.0 and before.h > arma.h, (before, arma)
+    assert max(r.lam for r in got[0]) > 1.5, got[0]
 
 
 def test_a_growing_colour_whitens_without_a_new_window_and_allows_for_its_shortfall() -> None:
