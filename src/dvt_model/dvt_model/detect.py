@@ -224,7 +224,8 @@ class Reference:
     residual (``(1 - phi) / (1 + theta)``, or ``1 - sum(a_j)`` of the AR whitening); ``lam`` [-]
     the long-run variance of the whitened residual relative to its variance that the design
     allowed for (1: white; above 1 while the colour is learned on less than ``colour_s``,
-    :func:`long_run_ratio`).
+    :func:`long_run_ratio`; before the colour the window's own, whose uncertainty the
+    threshold allows for too, :func:`long_run_spread`).
     """
 
     level: float
