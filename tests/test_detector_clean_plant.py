@@ -1,6 +1,6 @@
 """The change detector on the simulated plant's own residual, offline (slow): its false-alarm
-rate once the residual's colour is learned, and its change-time estimate for the step of
-``tests/test_change_detection.py``.
+rate once the residual's colour is learned and before it (the first minute after a start), and
+its change-time estimate for the step of ``tests/test_change_detection.py``.
 
 ``src/dvt_model/test/test_false_alarm_rate.py`` and ``test_detect_colour.py`` check the design
 (one false alarm per 4 h) on simulated coloured residuals. This test checks it where the model
