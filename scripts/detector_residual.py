@@ -206,7 +206,7 @@ def rate_line(alarms: int, hours: float) -> str:
 
 def main() -> int:
     from dvt_model.config import detector_config
-    from dvt_model.detect import ChangeDetector, reference_from_window
+    from dvt_model.detect import SIEGMUND_OFFSET, ChangeDetector, reference_from_window
     from dvt_model.detect_sim import rate_bounds
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -314,7 +314,8 @@ def main() -> int:
         w = rng.standard_normal(L)
         pairs.append((reference_from_window(w, cfg, None, None), reference_from_window(w, cfg)))
     ratio = np.asarray([first.h / arma.h for first, arma in pairs])
-    delay = [float(np.median([(r.h + 1.166) / (cfg.shift_sigma - r.k) / cfg.sample_rate_hz
+    delay = [float(np.median([(r.h + SIEGMUND_OFFSET) / (cfg.shift_sigma - r.k)
+                              / cfg.sample_rate_hz
                               for r in refs])) for refs in zip(*pairs, strict=True)]
     figures["first_minute_white"] = {
         "windows": WHITE_WINDOWS, "h_ratio_quantiles_10_50_90_100":
