@@ -7,7 +7,7 @@ separate value in each of ``K`` consecutive windows of the estimation data (each
 ``K`` equal pieces; the simulation runs through the whole segment, the state carried across the
 window edges), every other parameter held at the fitted estimate and the initial states
 re-estimated, and gives each window's value its HAC sandwich standard deviation
-(:func:`dvt_identify.uncertainty.sandwich_covariance`). One parameter at a time keeps each
+(:func:`dvt_identify.uncertainty.sandwich_by_segment`). One parameter at a time keeps each
 window's estimate well conditioned (in a window where the parameters are not jointly determined,
 e.g. a locked gear, a joint refit wanders). A weighted straight line over the window centre
 times gives the trend ``b`` and its standard error; the parameter **drifts** when
@@ -43,9 +43,9 @@ from dvt_identify.fit import OEFit
 from dvt_identify.parallel import fork_map
 from dvt_identify.sensitivity import simulate_sens_states
 from dvt_identify.simulation import DivergedError
-from dvt_identify.streamls import Block, Factored, dense, dense_ok
+from dvt_identify.streamls import Block, Factored
 from dvt_identify.structures import PENALTY
-from dvt_identify.uncertainty import sandwich_by_segment, sandwich_covariance
+from dvt_identify.uncertainty import sandwich_by_segment
 
 Array = NDArray[np.float64]
 MIN_PIECE = 100
@@ -198,19 +198,6 @@ def _refit_one(fit: OEFit, i: int, segs: Sequence[Segment], windows: int
     spec = m.specs[i]
     edges = [_edges(s, windows) for s in segs]
 
-    def fun(z: Array) -> Array:
-        vals = z[:windows]
-        parts = []
-        for k, seg in enumerate(segs):
-            x0 = z[windows + k * nx: windows + (k + 1) * nx]
-            try:
-                yh = _simulate_windows(fit, i, vals, seg, x0, edges[k])
-                parts.append(((seg.y - yh) / w).ravel())
-            except (np.linalg.LinAlgError, ValueError, OverflowError, ZeroDivisionError):
-                parts.append(np.full(seg.y.size, PENALTY))
-        r = np.nan_to_num(np.concatenate(parts), nan=PENALTY, posinf=PENALTY, neginf=-PENALTY)
-        return np.asarray(np.clip(r, -PENALTY, PENALTY))
-
     q = windows + len(segs) * nx
 
     def rows(z: Array, k: int) -> Block:
@@ -233,32 +220,25 @@ def _refit_one(fit: OEFit, i: int, segs: Sequence[Segment], windows: int
         return (np.asarray(np.nan_to_num(J, nan=0.0, posinf=0.0, neginf=0.0)),
                 np.asarray(np.clip(r, -PENALTY, PENALTY)), cols.astype(np.int64))
 
-    def jac(z: Array) -> Array:
-        return np.vstack([dense(rows(z, k), q)[0] for k in range(len(segs))])
     v0 = float(np.clip(fit.theta_[i], spec.lower, spec.upper))
     z0 = np.concatenate([np.full(windows, v0), *fit.x0_[: len(segs)]])
     zlo = np.concatenate([np.full(windows, spec.lower), np.full(len(segs) * nx, -np.inf)])
     zhi = np.concatenate([np.full(windows, spec.upper), np.full(len(segs) * nx, np.inf)])
     if np.any(zlo >= zhi):
         return np.full(windows, v0), np.full(windows, np.inf)
-    if dense_ok(sum(sg.y.size for sg in segs), q):
-        r = least_squares(fun, z0, jac=jac, bounds=(zlo, zhi), x_scale="jac", method="trf",
-                          ftol=1e-8, xtol=1e-8, gtol=1e-8)
-        z = r.x
-        cov = sandwich_covariance(r.jac, r.fun, m.ny, [s.n for s in segs])
-    else:  # a long recording: by its factor (dvt_identify.streamls)
-        fac = Factored(lambda z: (rows(z, k) for k in range(len(segs))), q)
-        got = _gauss_newton(fac, z0, zlo, zhi, windows, sum(sg.y.size for sg in segs))
-        # not settled in GN_STEPS: the trust-region solver from the fit
-        z = got if got is not None else least_squares(
-            fac.residual, z0, jac=fac.jacobian, bounds=(zlo, zhi), x_scale="jac",
-            method="trf", ftol=1e-8, xtol=1e-8, gtol=1e-8).x
-        _, cov = sandwich_by_segment(lambda k: rows(z, k), [s.n for s in segs], m.ny, q)
+    # by the problem's triangular factor (dvt_identify.streamls), whatever the length
+    fac = Factored(lambda z: (rows(z, k) for k in range(len(segs))), q)
+    got = _gauss_newton(fac, z0, zlo, zhi, windows, sum(sg.y.size for sg in segs))
+    # not settled in GN_STEPS: the trust-region solver from the fit
+    z = got if got is not None else least_squares(
+        fac.residual, z0, jac=fac.jacobian, bounds=(zlo, zhi), x_scale="jac",
+        method="trf", ftol=1e-8, xtol=1e-8, gtol=1e-8).x
+    _, cov = sandwich_by_segment(lambda k: rows(z, k), [s.n for s in segs], m.ny, q)
     return np.asarray(z[:windows], float), np.asarray(cov.std[:windows], float)
 
 
 GN_STEPS = 6
-"""Most Gauss-Newton steps of a long recording's window refit (:func:`_gauss_newton`)."""
+"""Most Gauss-Newton steps of a window refit (:func:`_gauss_newton`)."""
 GN_HALVINGS = 2
 """A Gauss-Newton step that raises the cost is halved at most this many times (one pass
 each) before the point before it stands."""
@@ -275,7 +255,8 @@ def _gauss_newton(fac: Factored, z0: Array, lo: Array, hi: Array, windows: int,
     few standard deviations of each window's own. Each step costs one pass over the data
     (the factor :class:`~dvt_identify.streamls.Factored` takes at every evaluation), where the
     trust-region solver spent 6-12 (measured on an hour at 200 Hz: 13-15 passes per
-    parameter with the final covariance, 4-5 now).
+    parameter with the final covariance, 4-5 now; on the 38-s `dvt-bench identify` recording
+    at 1 kHz the six refits took 0.21 s on both cores with the solver, 0.10 s now).
 
     Returns the point when a step moves no window value by more than :data:`GN_TOLERANCE` of
     its standard deviation, or when a step and its halves (:data:`GN_HALVINGS`) all raise the
