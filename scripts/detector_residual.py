@@ -24,6 +24,10 @@ each, two recordings at a time, and prints, per output over all recordings:
 * the first minute's allowance (before the colour) on white residual, where there is no
   colour to allow for: its thresholds over the ARMA's own design, and the expected delay to a
   ``shift_sigma`` step with and without it;
+* the growing colour's allowance (minutes 1-5) on white residual: thresholds designed over
+  the long-run variance ratio of a white ``COLOUR_CHUNK_S`` chunk with its uncertainty (as
+  the detector does), and at the ratio alone (as it did before 2026-12-07), over the design
+  for white increments, with the expected delays;
 * a design tried and not kept (``--trial``): ``h`` for whitened increments of long-run
   variance ``lam`` (``k`` and ``h`` act divided by ``sqrt(lam)``), ``lam`` from
   :data:`TRIAL_BATCHES` batch means of the whitened reference window (at least 1) and the rate
@@ -206,7 +210,14 @@ def rate_line(alarms: int, hours: float) -> str:
 
 def main() -> int:
     from dvt_model.config import detector_config
-    from dvt_model.detect import SIEGMUND_OFFSET, ChangeDetector, reference_from_window
+    from dvt_model.detect import (
+        COLOUR_CHUNK_S,
+        SIEGMUND_OFFSET,
+        ChangeDetector,
+        long_run_ratio,
+        long_run_spread,
+        reference_from_window,
+    )
     from dvt_model.detect_sim import rate_bounds
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -326,6 +337,33 @@ def main() -> int:
         + " ".join(f"{v:.2f}" for v in np.quantile(ratio, [0.1, 0.5, 0.9, 1.0]))
         + f"; expected delay to a {cfg.shift_sigma:g} sigma step (Siegmund, median) "
         f"{delay[0]:.2f} s with the allowance, {delay[1]:.2f} s without")
+    # what the growing colour's allowance costs on white residual: a reference window
+    # whitened by a colour (here of order 0), lam from a white chunk
+    chunk = round(COLOUR_CHUNK_S * cfg.sample_rate_hz)
+    none = np.zeros(0)
+    trios = []
+    for _ in range(WHITE_WINDOWS):
+        w, c = rng.standard_normal(L), rng.standard_normal(chunk)
+        trios.append((reference_from_window(w, cfg, none, long_run_spread(c, cfg.sample_rate_hz)),
+                      reference_from_window(w, cfg, none, long_run_ratio(c, cfg.sample_rate_hz)),
+                      reference_from_window(w, cfg, none)))
+    grow = {name: np.asarray([t[j].h / t[2].h for t in trios])
+            for j, name in ((0, "spread"), (1, "ratio"))}
+    gdelay = [float(np.median([(r.h + SIEGMUND_OFFSET) / (cfg.shift_sigma - r.k)
+                               / cfg.sample_rate_hz for r in refs]))
+              for refs in zip(*trios, strict=True)]
+    figures["growing_colour_white"] = {
+        "windows": WHITE_WINDOWS, "chunk_s": COLOUR_CHUNK_S,
+        "h_ratio_quantiles_10_50_90_100": {
+            k: np.quantile(v, [0.1, 0.5, 0.9, 1.0]).round(3).tolist() for k, v in grow.items()},
+        "delay_s_median_spread_ratio_white": gdelay}
+    say(f"\nthe growing colour, on {WHITE_WINDOWS} white chunks of {COLOUR_CHUNK_S:g} s: h over "
+        "the white design, quantiles 10/50/90/100 %: with the ratio's uncertainty "
+        + " ".join(f"{v:.2f}" for v in np.quantile(grow["spread"], [0.1, 0.5, 0.9, 1.0]))
+        + "; at the ratio alone "
+        + " ".join(f"{v:.2f}" for v in np.quantile(grow["ratio"], [0.1, 0.5, 0.9, 1.0]))
+        + f"; expected delay to a {cfg.shift_sigma:g} sigma step (median) {gdelay[0]:.2f} / "
+        f"{gdelay[1]:.2f} / {gdelay[2]:.2f} s")
     if a.trial:
         rate_hz = cfg.sample_rate_hz
         white = np.random.default_rng(1).standard_normal(

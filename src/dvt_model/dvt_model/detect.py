@@ -55,8 +55,11 @@ gain ``1 - sum_j a_j``. While the history grows the colour is fitted on less tha
 CUSUM on it alarmed about 7 times an hour on the simulated plant in minutes 1-5): each refit
 then whitens the reference window in use again (testing goes on, no new window), and ``h`` is
 designed for whitened increments of long-run variance ``lam`` (:attr:`Reference.lam`), the
-largest batch-means ratio (:func:`long_run_ratio`) of the newest chunk whitened by the colour
-before it (out of sample; the first colour by itself). Its first fit on the full ``colour_s``
+largest batch-means ratio of the newest chunk whitened by the colour before it (out of
+sample; the first colour by itself), over that ratio's sampling uncertainty
+(:func:`long_run_spread`, as before the first colour: at the ratio alone the first 5 minutes
+raised 5 false alarms where this raised 1, in the same 11.6 h of 192 starts; docs/loop.md
+"Limits"). Its first fit on the full ``colour_s``
 starts a new reference window once more, with ``lam`` 1
 (:attr:`ChangeDetector.colour_complete`: the design holds from there). The colour is kept
 across alarms and :meth:`~ChangeDetector.reset`; an alarm removes the history from its
@@ -223,9 +226,9 @@ class Reference:
     ARMA(1, 1)); ``gain`` [-] the steady-state response of the whitened residual to a step of the
     residual (``(1 - phi) / (1 + theta)``, or ``1 - sum(a_j)`` of the AR whitening); ``lam`` [-]
     the long-run variance of the whitened residual relative to its variance that the design
-    allowed for (1: white; above 1 while the colour is learned on less than ``colour_s``,
-    :func:`long_run_ratio`; before the colour the window's own, whose uncertainty the
-    threshold allows for too, :func:`long_run_spread`).
+    allowed for (1: white; above 1 while the colour is learned on less than ``colour_s``, and
+    before the colour the window's own): the median of the points of its uncertainty over which
+    the threshold is designed (:func:`long_run_spread`).
     """
 
     level: float
@@ -440,7 +443,7 @@ def ar_by_aic(acov: NDArray[np.float64], n: int, max_order: int) -> NDArray[np.f
 
 def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
                           colour: NDArray[np.float64] | None = None,
-                          lam: float | None = 1.0) -> Reference:
+                          lam: float | Sequence[float] | None = 1.0) -> Reference:
     """Learn one output's :class:`Reference` from its reference window (1-D, [rad/s]).
 
     ARMA(1, 1) by the method of moments on the winsorised, centred window: ``phi`` from the
@@ -452,8 +455,10 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
 
     With ``colour`` (AR coefficients ``a_1..a_p`` of :func:`ar_by_aic`, learned on a long
     history) the window gives only the level and the scale: ``a_t = c_t - sum_j a_j c_(t-j)``
-    from lag ``p`` on, ``phi`` and ``theta`` 0, ``order`` ``p``; ``lam`` (at least 1) is the
-    whitened residual's long-run variance ratio the threshold allows for (:func:`_design`).
+    from lag ``p`` on, ``phi`` and ``theta`` 0, ``order`` ``p``; ``lam`` (each at least 1) is
+    the whitened residual's long-run variance ratio the threshold allows for (:func:`_design`):
+    one value, or the points of its uncertainty (:func:`long_run_spread`). ``lam`` ``None``
+    (no colour): the ratio the window's own whitened residual shows, with its uncertainty.
     """
     from scipy.signal import lfilter
 
@@ -467,7 +472,7 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
     n = c.size
     if colour is not None:
         return _ar_reference(window, c, level, mad, np.asarray(colour, dtype=float), config,
-                             1.0 if lam is None else lam)
+                             _points(lam))
     # elementwise products, not BLAS dot: no thread pool wakes up inside the 1 kHz loop
     den = float(np.sum(c * c))
     phi = 0.0
@@ -499,12 +504,25 @@ def reference_from_window(window: NDArray[np.float64], config: DetectorConfig,
     gain = (1.0 - phi) / (1.0 + theta)  # steady-state response of a to a step in r
     # no colour yet (lam None): allow for the slow colour the window's own whitening may
     # leave, over what the window can say about it (docs/loop.md "Limits", the first minute)
-    lams = long_run_spread(a, config.sample_rate_hz) if lam is None else (lam,)
-    lam = max(1.0, long_run_ratio(a, config.sample_rate_hz) if lam is None else lam)
+    lams = long_run_spread(a, config.sample_rate_hz) if lam is None else _points(lam)
     k, h, arl0_s = _design(sigma, sigma_e, gain, config, lams)
     return Reference(level=level, phi=phi, theta=theta, sigma_e=sigma_e, sigma=sigma, k=k,
                      h=h, arl0_s=arl0_s, last_r=float(window[-1]),
-                     last_a=float(a[-1]) if a.size else 0.0, gain=gain, lam=lam)
+                     last_a=float(a[-1]) if a.size else 0.0, gain=gain, lam=_shown(lams))
+
+
+def _points(lam: float | Sequence[float] | None) -> tuple[float, ...]:
+    """``lam`` of :func:`reference_from_window` as points, each at least 1 (``None``: 1)."""
+    if lam is None:
+        return (1.0,)
+    vals = (lam,) if isinstance(lam, (int, float)) else tuple(lam)
+    return tuple(max(1.0, float(v)) for v in vals) or (1.0,)
+
+
+def _shown(lams: Sequence[float]) -> float:
+    """The one long-run variance ratio a :class:`Reference` shows for the points its threshold
+    allows for: their median."""
+    return float(np.median(np.asarray(lams, dtype=float)))
 
 
 def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig,
@@ -581,7 +599,7 @@ def long_run_spread(z: NDArray[np.float64], sample_rate_hz: float) -> tuple[floa
 
 def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: float,
                   mad: float, coef: NDArray[np.float64], config: DetectorConfig,
-                  lam: float = 1.0) -> Reference:
+                  lams: Sequence[float] = (1.0,)) -> Reference:
     """:func:`reference_from_window` with the long-window whitening ``coef`` (``a_1..a_p``)."""
     p = coef.size
     a = _ar_whiten(c, coef)
@@ -594,10 +612,10 @@ def _ar_reference(window: NDArray[np.float64], c: NDArray[np.float64], level: fl
     sigma = mad if mad > 0 else sigma_e
     # Yule-Walker on biased autocovariances is stationary: sum(a_j) < 1
     gain = max(1.0 - float(np.sum(coef)), 1e-6)
-    lam = max(float(lam), 1.0)
-    k, h, arl0_s = _design(sigma, sigma_e, gain, config, (lam,))
+    k, h, arl0_s = _design(sigma, sigma_e, gain, config, lams)
     return Reference(level=level, phi=0.0, theta=0.0, sigma_e=sigma_e, sigma=sigma, k=k, h=h,
-                     arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain, lam=lam)
+                     arl0_s=arl0_s, last_r=float(window[-1]), order=p, gain=gain,
+                     lam=_shown(lams))
 
 
 def _ar_whiten(x: NDArray[np.float64], coef: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -668,7 +686,8 @@ class ChangeDetector:
         self._pool: deque[tuple[float, int, NDArray[np.float64]]] = deque()
         self._colour: list[NDArray[np.float64]] | None = None
         self._colour_fit_n = 0  # samples the latest colour was fitted on
-        self._colour_lam = [1.0] * self.n  # its whitening's long-run variance ratio
+        # its whitening's long-run variance ratio, as the points of its uncertainty
+        self._colour_lam: list[tuple[float, ...]] = [(1.0,)] * self.n
         self._colour_used_n = 0  # ... and the colour the reference in use whitens by
         self._first_lam: float | None = None if self._P else 1.0
         self._colour_rev: list[NDArray[np.float64]] = []
@@ -934,7 +953,7 @@ class ChangeDetector:
         # whitened by the colour before it (out of sample; the first by its own, in sample),
         # allowed for in the threshold until the colour has its full history (then the
         # design holds: docs/loop.md "Colour")
-        self._colour_lam = [1.0 if total >= need else long_run_ratio(
+        self._colour_lam = [(1.0,) if total >= need else long_run_spread(
             _ar_whiten(raw[i], (self._colour if previous is None else previous)[i]),
             self.config.sample_rate_hz) for i in range(self.n)]
         # a colour on the full history replaces a shorter one in a reference being tested

@@ -207,6 +207,42 @@ def test_a_growing_colour_whitens_without_a_new_window_and_allows_for_its_shortf
     assert status["sun_shaft.lam"] == "1"
 
 
+def test_a_growing_colours_threshold_allows_for_the_uncertainty_of_its_ratio(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """While the colour grows (minutes 1-5) each refit designs ``h`` over the newest chunk's
+    long-run variance ratio with its uncertainty (:func:`long_run_spread`, as before the
+    first colour): above the threshold at the ratio alone, on the same data and the same
+    ``k``; the full colour's references (``lam`` 1) are the same either way."""
+    import dvt_model.detect as detect
+
+    cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=240.0, colour_lag_s=1.0).validated()
+    x = 0.01 * slow_and_white(np.random.default_rng(12), round(320 * RATE))
+
+    def run() -> tuple[list[list[tuple[float, float, float]]], list[tuple[float, float]]]:
+        det = ChangeDetector(cfg)
+        fits, growth = 0, []
+        for j, row in enumerate(x.tolist()):
+            det.update(j / RATE, row)
+            if det.counters.colour_fits > fits:
+                fits = det.counters.colour_fits
+                if det.colour_in_use and not det.colour_complete and not det.learning:
+                    growth.append([(r.k, r.h, r.lam) for r in det.references])
+        return growth, [(r.k, r.h) for r in det.references]
+
+    spread, full = run()
+    # the ratio alone: one point, the largest batch-means ratio
+    monkeypatch.setattr(detect, "long_run_spread", lambda z, rate: (long_run_ratio(z, rate),))
+    ratio, full_ratio = run()
+    assert len(spread) == len(ratio) == 2, (spread, ratio)  # the 120-s and 180-s refits
+    for with_u, alone in zip(spread, ratio, strict=True):
+        # an output whose chunk shows no slow colour (every point 1) keeps its design
+        assert all(k1 == k2 and h1 >= h2 for (k1, h1, _), (k2, h2, _) in
+                   zip(with_u, alone, strict=True)), (with_u, alone)
+        assert any(h1 > h2 for (_, h1, _), (_, h2, _) in zip(with_u, alone, strict=True)), (
+            with_u, alone)
+    assert full == full_ratio
+
+
 def test_reset_keeps_the_colour_and_an_alarm_drops_the_history_since_the_change() -> None:
     cfg = DetectorConfig(sample_rate_hz=RATE, colour_s=120.0,
                          colour_lag_s=1.0).validated()
