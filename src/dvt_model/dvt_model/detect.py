@@ -57,8 +57,8 @@ then whitens the reference window in use again (testing goes on, no new window),
 designed for whitened increments of long-run variance ``lam`` (:attr:`Reference.lam`), the
 largest batch-means ratio of the newest chunk whitened by the colour before it (out of
 sample; the first colour by itself), over that ratio's sampling uncertainty
-(:func:`long_run_spread`, as before the first colour: at the ratio alone the first 5 minutes
-raised 5 false alarms where this raised 1, in the same 11.6 h of 192 starts; docs/loop.md
+(:func:`long_run_spread`, as before the first colour: at the ratio alone minutes 1-5 of 150
+starts raised 9 false alarms in 9.2 h, with its uncertainty 2 on the same residual; docs/loop.md
 "Limits"). Its first fit on the full ``colour_s``
 starts a new reference window once more, with ``lam`` 1
 (:attr:`ChangeDetector.colour_complete`: the design holds from there). The colour is kept
