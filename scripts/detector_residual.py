@@ -57,6 +57,7 @@ import json
 import math
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from typing import Any
 
 import numpy as np
 from scipy.signal import lfilter
@@ -325,9 +326,12 @@ def main() -> int:
         w = rng.standard_normal(L)
         pairs.append((reference_from_window(w, cfg, None, None), reference_from_window(w, cfg)))
     ratio = np.asarray([first.h / arma.h for first, arma in pairs])
-    delay = [float(np.median([(r.h + SIEGMUND_OFFSET) / (cfg.shift_sigma - r.k)
-                              / cfg.sample_rate_hz
-                              for r in refs])) for refs in zip(*pairs, strict=True)]
+    def median_delay(refs: tuple[Any, ...]) -> float:
+        """Median expected delay [s] to a ``shift_sigma`` step (Siegmund) of ``refs``."""
+        return float(np.median([(r.h + SIEGMUND_OFFSET) / (cfg.shift_sigma - r.k)
+                                / cfg.sample_rate_hz for r in refs]))
+
+    delay = [median_delay(refs) for refs in zip(*pairs, strict=True)]
     figures["first_minute_white"] = {
         "windows": WHITE_WINDOWS, "h_ratio_quantiles_10_50_90_100":
         np.quantile(ratio, [0.1, 0.5, 0.9, 1.0]).round(3).tolist(),
@@ -349,9 +353,7 @@ def main() -> int:
                       reference_from_window(w, cfg, none)))
     grow = {name: np.asarray([t[j].h / t[2].h for t in trios])
             for j, name in ((0, "spread"), (1, "ratio"))}
-    gdelay = [float(np.median([(r.h + SIEGMUND_OFFSET) / (cfg.shift_sigma - r.k)
-                               / cfg.sample_rate_hz for r in refs]))
-              for refs in zip(*trios, strict=True)]
+    gdelay = [median_delay(refs) for refs in zip(*trios, strict=True)]
     figures["growing_colour_white"] = {
         "windows": WHITE_WINDOWS, "chunk_s": COLOUR_CHUNK_S,
         "h_ratio_quantiles_10_50_90_100": {

@@ -536,7 +536,7 @@ def _design(sigma: float, sigma_e: float, gain: float, config: DetectorConfig,
     k = 0.5 * config.shift_sigma * sigma * gain / sigma_e
     n_sides = 2 * len(config.names)
     rate = 1.0 / (config.false_alarm_period_s * config.sample_rate_hz * n_sides)
-    lams = [max(float(v), 1.0) for v in lams]
+    lams = list(_points(lams))
     h = design_threshold(k, 2.0 * rate, config.learn_samples, lams)
     side = float(np.mean([false_alarm_rate(k / math.sqrt(v), h / math.sqrt(v),
                                            config.learn_samples) for v in lams]))
