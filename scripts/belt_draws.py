@@ -8,9 +8,17 @@ drive's scale-only description (every prior 1), ``--select-on cv``. Each row: th
 accepted effects, the test fit of the physical model and of the linear reference, and each
 parameter's error in reported standard deviations.
 
+With ``--realizations R``: each drive (its parameters fixed) is recorded ``R`` times with
+other commands and noise (records seeds ``REALIZATION_SEED + 10 r``) and identified each time;
+per parameter the spread of the estimates over the realizations named as drawn against the
+reported standard deviations: ``std_ratio`` (sample std of the estimates over the RMS of the
+reported std; 1 when the reported std are honest), ``z_rms`` with its two-sided 95 % interval
+for honest std (``sqrt(chi2(R) / R)`` quantiles) and ``z_mean`` (a bias shows there).
+
 Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F]
-[--init-window N] [--sensor-lag TAU] [--lag-candidate] [--json]``
-(about 10 s per drive); ``scripts/results.sh belt`` writes ``docs/results/belt.json``.
+[--init-window N] [--sensor-lag TAU] [--lag-candidate] [--realizations R] [--json]``
+(about 10 s per drive and realization); ``scripts/results.sh belt`` writes
+``docs/results/belt.json``.
 """
 
 from __future__ import annotations
@@ -35,9 +43,15 @@ FRICTION = 0.0
 LAG_CANDIDATE = {"effect": "sensor_lag", "where": "w_pulley"}
 
 
+REALIZATION_SEED = 10_000
+"""Records seed of a drive's first realization (``--realizations``; apart from the
+``100 * seed`` of the one record set per drive)."""
+
+
 def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float = 0.0,
-        lag_candidate: bool = False) -> dict[str, Any]:
-    """Draw, record and identify one drive (module docstring); its row."""
+        lag_candidate: bool = False, records_seed: int | None = None) -> dict[str, Any]:
+    """Draw, record and identify one drive (module docstring); its row. ``records_seed``:
+    the records' seed (default ``100 * seed``)."""
     import belt_drive
 
     from dvt_identify.data import JointStateSeries, Segment, write_jointstate_bag
@@ -50,8 +64,9 @@ def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float 
             "/belt/drive": JointStateSeries(stamps, ("motor",), effort=seg.u[:, :1])}))
 
     drive = belt_drive.draw(np.random.default_rng(seed))
-    segs, _ = belt_drive.records(drive, seed=100 * seed, n=500, friction=friction, lag=lag)
-    work = tmp / f"drive-{seed}"
+    rs = 100 * seed if records_seed is None else records_seed
+    segs, _ = belt_drive.records(drive, seed=rs, n=500, friction=friction, lag=lag)
+    work = tmp / f"drive-{seed}-{rs}"
     est = [bag(work / f"est{k}", s.rows(0, 300)) for k, s in enumerate(segs)]
     test = [bag(work / f"test{k}", s.rows(300, 500, from_zero=True))
             for k, s in enumerate(segs)]
@@ -64,17 +79,45 @@ def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float 
     values, std = r.final.fit.parameters(), r.final.fit.parameter_std()
     truth = {**drive, **({"Fc": friction} if friction else {}), **({"tau": lag} if lag else {})}
     tf = r.test
-    return {"seed": seed, "drive": drive, "friction": friction, "init_window": init_window,
-            "sensor_lag": lag, "lag_candidate": lag_candidate,
+    return {"seed": seed, "records_seed": rs, "drive": drive, "friction": friction,
+            "init_window": init_window, "sensor_lag": lag, "lag_candidate": lag_candidate,
             "accepted": [d.score.label for d in r.accepted],
             "test_fit_percent": float(tf.final.fit_percent[0]),
             "reference_test_fit_percent": (float(tf.reference.fit_percent[0])
                                            if tf.reference is not None else None),
             "error_in_std": {k: (values[k] - v) / std[k] if std.get(k) else None
                              for k, v in truth.items() if k in values},
+            "estimate": {k: values[k] for k in truth if k in values},
+            "std": {k: std.get(k) for k in truth if k in values},
             "relative_error_percent": {k: 100.0 * (values[k] / v - 1.0)
                                        for k, v in truth.items() if k in values},
             "seconds": round(seconds, 1)}
+
+
+def calibration(rows: list[dict[str, Any]], drawn: list[str]) -> dict[str, Any]:
+    """One drive's realizations (rows of :func:`one`): per parameter, over those named as
+    drawn, the spread of the estimates against the reported std (module docstring)."""
+    from scipy.stats import chi2
+
+    good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
+    out: dict[str, Any] = {"seed": rows[0]["seed"], "realizations": len(rows),
+                           "named_as_drawn": len(good), "parameters": {}}
+    n = len(good)
+    if n < 2:
+        return out
+    lo, hi = (float(np.sqrt(chi2.ppf(q, n) / n)) for q in (0.025, 0.975))
+    for k in good[0]["error_in_std"]:
+        z = np.array([r["error_in_std"][k] for r in good if r["error_in_std"][k] is not None])
+        est = np.array([r["estimate"][k] for r in good])
+        sd = np.array([r["std"][k] for r in good if r["std"][k]])
+        if z.size < 2 or sd.size < 2:
+            continue
+        out["parameters"][k] = {
+            "std_ratio": float(np.std(est, ddof=1) / np.sqrt(np.mean(sd ** 2))),
+            "z_rms": float(np.sqrt(np.mean(z ** 2))), "z_rms_95_if_honest": [lo, hi],
+            "z_mean": float(np.mean(z)), "relative_std_percent": float(
+                100.0 * np.sqrt(np.mean(sd ** 2)) / abs(float(np.mean(est))))}
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,13 +133,20 @@ def main(argv: list[str] | None = None) -> int:
                          "[s] (default 0: none)")
     ap.add_argument("--lag-candidate", action="store_true",
                     help="add the sensor_lag candidate to the description")
+    ap.add_argument("--realizations", type=int, default=0,
+                    help="record and identify each drive this many times (module docstring; "
+                         "default 0: once, the table of drives)")
     ap.add_argument("--json", action="store_true", help="print one JSON document")
     args = ap.parse_args(argv)
+    if args.realizations < 0 or args.realizations == 1:
+        ap.error(f"--realizations: expected 0 or at least 2, got {args.realizations}")
+    drawn = (["sign_blind@w_pulley"] + (["coulomb_friction@motor"] if args.friction else [])
+             + (["sensor_lag@w_pulley"] if args.sensor_lag else []))
+    if args.realizations:
+        return _realizations(args, drawn)
     with tempfile.TemporaryDirectory() as tmp:
         rows = [one(s, args.friction, Path(tmp), args.init_window, args.sensor_lag,
                     args.lag_candidate) for s in args.seeds]
-    drawn = (["sign_blind@w_pulley"] + (["coulomb_friction@motor"] if args.friction else [])
-             + (["sensor_lag@w_pulley"] if args.sensor_lag else []))
     good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
     summary = {"drives": len(rows), "named_as_drawn": len(good),
                "test_fit_above_95": sum(r["test_fit_percent"] > 95.0 for r in rows),
@@ -115,6 +165,29 @@ def main(argv: list[str] | None = None) -> int:
               + ", ".join(f"{k} {v:+.2g} std" for k, v in r["error_in_std"].items()
                           if v is not None))
     print(summary)
+    return 0
+
+
+def _realizations(args: argparse.Namespace, drawn: list[str]) -> int:
+    """``--realizations``: every drive identified ``args.realizations`` times, both cores."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    jobs = [(s, REALIZATION_SEED + 10 * r) for s in args.seeds for r in range(args.realizations)]
+    with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(2) as pool:
+        futures = [pool.submit(one, s, args.friction, Path(tmp), args.init_window,
+                               args.sensor_lag, args.lag_candidate, rs) for s, rs in jobs]
+        rows = [f.result() for f in futures]
+    drives = [calibration([r for r in rows if r["seed"] == s], drawn) for s in args.seeds]
+    if args.json:
+        print(json.dumps({"drives": drives}, indent=2, default=float))
+        return 0
+    for d in drives:
+        print(f"seed {d['seed']}: {d['named_as_drawn']} of {d['realizations']} named as drawn")
+        for k, v in d["parameters"].items():
+            lo, hi = v["z_rms_95_if_honest"]
+            print(f"  {k}: std ratio {v['std_ratio']:.2f}, z RMS {v['z_rms']:.2f} (honest: "
+                  f"{lo:.2f} to {hi:.2f}), z mean {v['z_mean']:+.2f}, reported std "
+                  f"{v['relative_std_percent']:.2g} %")
     return 0
 
 

@@ -23,7 +23,9 @@ and ``belt_friction`` (random belt drives read by a sign-blind pulse counter, wi
 Coulomb friction on the motor, ``scripts/belt_draws.py``), ``belt_window`` (the same drives,
 every initial state from its record's first 10 samples), ``belt_lag`` / ``belt_lag_undeclared``
 / ``belt_lag_clean`` (the counter read through a 30-ms filter with and without the
-``sensor_lag`` candidate, and the clean drives with it), ``all``.
+``sensor_lag`` candidate, and the clean drives with it), ``belt_calibration`` (three of the
+drives recorded and identified 30 times each: the reported std against the estimates' spread),
+``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
 ``<!-- results:begin -->`` and ``<!-- results:end -->``) from the JSON files as they are
@@ -169,6 +171,8 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
                         "--json"),
     "belt_lag_undeclared": _script("scripts/belt_draws.py", "--sensor-lag", "0.03", "--json"),
     "belt_lag_clean": _script("scripts/belt_draws.py", "--lag-candidate", "--json"),
+    "belt_calibration": _script("scripts/belt_draws.py", "--seeds", "1", "4", "5",
+                                "--realizations", "30", "--json"),
 }
 
 
