@@ -16,7 +16,8 @@ reported std; 1 when the reported std are honest), ``z_rms`` with its two-sided 
 for honest std (``sqrt(chi2(R) / R)`` quantiles) and ``z_mean`` (a bias shows there).
 
 Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F]
-[--init-window N] [--sensor-lag TAU] [--lag-candidate] [--realizations R] [--json]``
+[--init-window N] [--sensor-lag TAU] [--lag-candidate] [--signed] [--realizations R]
+[--json]``
 (about 10 s per drive and realization); ``scripts/results.sh belt`` writes
 ``docs/results/belt.json``.
 """
@@ -49,9 +50,10 @@ REALIZATION_SEED = 10_000
 
 
 def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float = 0.0,
-        lag_candidate: bool = False, records_seed: int | None = None) -> dict[str, Any]:
+        lag_candidate: bool = False, records_seed: int | None = None,
+        signed: bool = False) -> dict[str, Any]:
     """Draw, record and identify one drive (module docstring); its row. ``records_seed``:
-    the records' seed (default ``100 * seed``)."""
+    the records' seed (default ``100 * seed``); ``signed``: the speed read with its sign."""
     import belt_drive
 
     from dvt_identify.data import JointStateSeries, Segment, write_jointstate_bag
@@ -65,7 +67,8 @@ def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float 
 
     drive = belt_drive.draw(np.random.default_rng(seed))
     rs = 100 * seed if records_seed is None else records_seed
-    segs, _ = belt_drive.records(drive, seed=rs, n=500, friction=friction, lag=lag)
+    segs, _ = belt_drive.records(drive, seed=rs, n=500, friction=friction, lag=lag,
+                                 signed=signed)
     work = tmp / f"drive-{seed}-{rs}"
     est = [bag(work / f"est{k}", s.rows(0, 300)) for k, s in enumerate(segs)]
     test = [bag(work / f"test{k}", s.rows(300, 500, from_zero=True))
@@ -80,7 +83,8 @@ def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float 
     truth = {**drive, **({"Fc": friction} if friction else {}), **({"tau": lag} if lag else {})}
     tf = r.test
     return {"seed": seed, "records_seed": rs, "drive": drive, "friction": friction,
-            "init_window": init_window, "sensor_lag": lag, "lag_candidate": lag_candidate,
+            "init_window": init_window, "sensor_lag": lag, "signed": signed,
+            "lag_candidate": lag_candidate,
             "accepted": [d.score.label for d in r.accepted],
             "test_fit_percent": float(tf.final.fit_percent[0]),
             "reference_test_fit_percent": (float(tf.reference.fit_percent[0])
@@ -133,6 +137,9 @@ def main(argv: list[str] | None = None) -> int:
                          "[s] (default 0: none)")
     ap.add_argument("--lag-candidate", action="store_true",
                     help="add the sensor_lag candidate to the description")
+    ap.add_argument("--signed", action="store_true",
+                    help="read the speed with its sign (a counter that knows the direction; "
+                         "the same noise): what the sign-blind reading costs")
     ap.add_argument("--realizations", type=int, default=0,
                     help="record and identify each drive this many times (module docstring; "
                          "default 0: once, the table of drives)")
@@ -140,13 +147,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.realizations < 0 or args.realizations == 1:
         ap.error(f"--realizations: expected 0 or at least 2, got {args.realizations}")
-    drawn = (["sign_blind@w_pulley"] + (["coulomb_friction@motor"] if args.friction else [])
+    drawn = (([] if args.signed else ["sign_blind@w_pulley"])
+             + (["coulomb_friction@motor"] if args.friction else [])
              + (["sensor_lag@w_pulley"] if args.sensor_lag else []))
     if args.realizations:
         return _realizations(args, drawn)
     with tempfile.TemporaryDirectory() as tmp:
         rows = [one(s, args.friction, Path(tmp), args.init_window, args.sensor_lag,
-                    args.lag_candidate) for s in args.seeds]
+                    args.lag_candidate, signed=args.signed) for s in args.seeds]
     good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
     summary = {"drives": len(rows), "named_as_drawn": len(good),
                "test_fit_above_95": sum(r["test_fit_percent"] > 95.0 for r in rows),
@@ -175,7 +183,8 @@ def _realizations(args: argparse.Namespace, drawn: list[str]) -> int:
     jobs = [(s, REALIZATION_SEED + 10 * r) for s in args.seeds for r in range(args.realizations)]
     with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(2) as pool:
         futures = [pool.submit(one, s, args.friction, Path(tmp), args.init_window,
-                               args.sensor_lag, args.lag_candidate, rs) for s, rs in jobs]
+                               args.sensor_lag, args.lag_candidate, rs, args.signed)
+                   for s, rs in jobs]
         rows = [f.result() for f in futures]
     drives = [calibration([r for r in rows if r["seed"] == s], drawn) for s in args.seeds]
     if args.json:

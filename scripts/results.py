@@ -24,7 +24,8 @@ Coulomb friction on the motor, ``scripts/belt_draws.py``), ``belt_window`` (the 
 every initial state from its record's first 10 samples), ``belt_lag`` / ``belt_lag_undeclared``
 / ``belt_lag_clean`` (the counter read through a 30-ms filter with and without the
 ``sensor_lag`` candidate, and the clean drives with it), ``belt_calibration`` (three of the
-drives recorded and identified 30 times each: the reported std against the estimates' spread),
+drives recorded and identified 30 times each: the reported std against the estimates' spread;
+``belt_calibration_signed``: the same with the speed read with its sign),
 ``all``.
 
 ``scripts/results.sh table`` runs nothing: it writes the README's results table (between
@@ -173,6 +174,8 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "belt_lag_clean": _script("scripts/belt_draws.py", "--lag-candidate", "--json"),
     "belt_calibration": _script("scripts/belt_draws.py", "--seeds", "1", "4", "5",
                                 "--realizations", "30", "--json"),
+    "belt_calibration_signed": _script("scripts/belt_draws.py", "--seeds", "1", "4", "5",
+                                       "--realizations", "30", "--signed", "--json"),
 }
 
 

@@ -80,12 +80,14 @@ def command(n: int, amplitude: float, rng: np.random.Generator) -> Array:
 
 
 def records(drive: str | dict[str, float], seed: int, n: int = 300, friction: float = 0.0,
-            lag: float = 0.0) -> tuple[list[Segment], list[Array]]:
+            lag: float = 0.0, signed: bool = False) -> tuple[list[Segment], list[Array]]:
     """One record per amplitude of :data:`AMPLITUDES` (``n`` samples each, seeds ``seed``,
     ``seed + 1``, ...) of a drive of :data:`DRIVES` (or its parameters): the segments as read
     (``|w| + noise``) and the true signed pulley speeds; ``friction``: a Coulomb friction
     [N m] on the motor; ``lag``: the counter's reading through a first-order filter of this
-    time constant [s] (the law of the ``sensor_lag`` effect), the noise added after it."""
+    time constant [s] (the law of the ``sensor_lag`` effect), the noise added after it;
+    ``signed``: the speed read with its sign (``w + noise``, the same noise: a counter that
+    knows the direction)."""
     desc = description()
     st = desc.structure
     values = DRIVES[drive] if isinstance(drive, str) else drive
@@ -104,7 +106,7 @@ def records(drive: str | dict[str, float], seed: int, n: int = 300, friction: fl
             cf = next(c for c in desc.make_candidates() if c.label() == "coulomb_friction@motor")
             model, th = OEModel(st, [cf]), np.array([*theta, friction, 0.0])
         w = model.simulate(th, blank, np.zeros(truth.nx))[:, 0]
-        y = (first_order_lag(np.abs(w), lag, 1.0 / RATE)
+        y = (first_order_lag(w if signed else np.abs(w), lag, 1.0 / RATE)
              + NOISE_SHARE * float(np.std(w)) * rng.standard_normal(n))
         segs.append(make_segment(blank.name, t, u, y[:, None], desc.input_names,
                                  desc.output_names))
