@@ -10,10 +10,11 @@ parameter's error in reported standard deviations.
 
 With ``--realizations R``: each drive (its parameters fixed) is recorded ``R`` times with
 other commands and noise (records seeds ``REALIZATION_SEED + 10 r``) and identified each time;
-per parameter the spread of the estimates over the realizations named as drawn against the
-reported standard deviations: ``std_ratio`` (sample std of the estimates over the RMS of the
-reported std; 1 when the reported std are honest), ``z_rms`` with its two-sided 95 % interval
-for honest std (``sqrt(chi2(R) / R)`` quantiles) and ``z_mean`` (a bias shows there).
+per parameter, over the realizations named as drawn and with a finite std for it
+(``finite_std`` of them), the spread of the estimates against the reported standard
+deviations: ``std_ratio`` (sample std of the estimates over the RMS of the reported std; 1
+when the reported std are honest), ``z_rms`` with its two-sided 95 % interval for honest std
+(``sqrt(chi2(n) / n)`` quantiles) and ``z_mean`` (a bias shows there).
 
 Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F]
 [--init-window N] [--sensor-lag TAU] [--lag-candidate] [--signed] [--realizations R]
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -106,17 +108,21 @@ def calibration(rows: list[dict[str, Any]], drawn: list[str]) -> dict[str, Any]:
     good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
     out: dict[str, Any] = {"seed": rows[0]["seed"], "realizations": len(rows),
                            "named_as_drawn": len(good), "parameters": {}}
-    n = len(good)
-    if n < 2:
+    if len(good) < 2:
         return out
-    lo, hi = (float(np.sqrt(chi2.ppf(q, n) / n)) for q in (0.025, 0.975))
     for k in good[0]["error_in_std"]:
-        z = np.array([r["error_in_std"][k] for r in good if r["error_in_std"][k] is not None])
-        est = np.array([r["estimate"][k] for r in good])
-        sd = np.array([r["std"][k] for r in good if r["std"][k]])
-        if z.size < 2 or sd.size < 2:
+        # a realization whose data leave the parameter undetermined (std inf) reports no std
+        kept = [r for r in good if r["std"][k] is not None and math.isfinite(r["std"][k])
+                and r["std"][k] > 0]
+        if len(kept) < 2:
+            out["parameters"][k] = {"finite_std": len(kept)}
             continue
+        z = np.array([r["error_in_std"][k] for r in kept])
+        est = np.array([r["estimate"][k] for r in kept])
+        sd = np.array([r["std"][k] for r in kept])
+        lo, hi = (float(np.sqrt(chi2.ppf(q, z.size) / z.size)) for q in (0.025, 0.975))
         out["parameters"][k] = {
+            "finite_std": len(kept),
             "std_ratio": float(np.std(est, ddof=1) / np.sqrt(np.mean(sd ** 2))),
             "z_rms": float(np.sqrt(np.mean(z ** 2))), "z_rms_95_if_honest": [lo, hi],
             "z_mean": float(np.mean(z)), "relative_std_percent": float(
@@ -193,10 +199,13 @@ def _realizations(args: argparse.Namespace, drawn: list[str]) -> int:
     for d in drives:
         print(f"seed {d['seed']}: {d['named_as_drawn']} of {d['realizations']} named as drawn")
         for k, v in d["parameters"].items():
+            if "z_rms" not in v:
+                print(f"  {k}: a finite std in {v['finite_std']} realizations only")
+                continue
             lo, hi = v["z_rms_95_if_honest"]
             print(f"  {k}: std ratio {v['std_ratio']:.2f}, z RMS {v['z_rms']:.2f} (honest: "
                   f"{lo:.2f} to {hi:.2f}), z mean {v['z_mean']:+.2f}, reported std "
-                  f"{v['relative_std_percent']:.2g} %")
+                  f"{v['relative_std_percent']:.2g} % ({v['finite_std']} with a finite std)")
     return 0
 
 
