@@ -14,7 +14,9 @@ per parameter, over the realizations named as drawn and with a finite std for it
 (``finite_std`` of them), the spread of the estimates against the reported standard
 deviations: ``std_ratio`` (sample std of the estimates over the RMS of the reported std; 1
 when the reported std are honest), ``z_rms`` with its two-sided 95 % interval for honest std
-(``sqrt(chi2(n) / n)`` quantiles) and ``z_mean`` (a bias shows there).
+(``sqrt(chi2(n) / n)`` quantiles) and ``z_mean`` (a bias shows there); each realization's
+error in std and reported std (``error_in_std_each``, ``std_each``, in the order of the
+realizations kept).
 
 Usage: ``.venv/bin/python scripts/belt_draws.py [--seeds N ...] [--friction F]
 [--init-window N] [--sensor-lag TAU] [--lag-candidate] [--signed] [--realizations R]
@@ -122,7 +124,8 @@ def calibration(rows: list[dict[str, Any]], drawn: list[str]) -> dict[str, Any]:
         sd = np.array([r["std"][k] for r in kept])
         lo, hi = (float(np.sqrt(chi2.ppf(q, z.size) / z.size)) for q in (0.025, 0.975))
         out["parameters"][k] = {
-            "finite_std": len(kept),
+            "finite_std": len(kept), "error_in_std_each": [float(v) for v in z],
+            "std_each": [float(v) for v in sd],
             "std_ratio": float(np.std(est, ddof=1) / np.sqrt(np.mean(sd ** 2))),
             "z_rms": float(np.sqrt(np.mean(z ** 2))), "z_rms_95_if_honest": [lo, hi],
             "z_mean": float(np.mean(z)), "relative_std_percent": float(
