@@ -5,25 +5,19 @@ a realization without a finite std or not named as drawn left out."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import numpy as np
+from script_module import load
 
-ROOT = Path(__file__).resolve().parents[1]
 DRAWN = ["sign_blind@w_pulley"]
 TRUTH = 2.0
 
 
 def _belt_draws() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("belt_draws", ROOT / "scripts" / "belt_draws.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load("belt_draws")
 
 
 def _rows(n: int, actual: float, reported: float, seed: int = 0) -> list[dict[str, Any]]:

@@ -4,20 +4,17 @@ commit and the date that produced its figures."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from types import ModuleType
+
+from script_module import load
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _results() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("results", ROOT / "scripts" / "results.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load("results")
 
 
 def test_the_readme_table_is_rendered_from_the_result_files() -> None:
