@@ -102,12 +102,17 @@ def one(seed: int, friction: float, tmp: Path, init_window: int = 0, lag: float 
             "seconds": round(seconds, 1)}
 
 
+def _named_as_drawn(rows: list[dict[str, Any]], drawn: list[str]) -> list[dict[str, Any]]:
+    """The rows (of :func:`one`) whose accepted effects are exactly ``drawn``."""
+    return [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
+
+
 def calibration(rows: list[dict[str, Any]], drawn: list[str]) -> dict[str, Any]:
     """One drive's realizations (rows of :func:`one`): per parameter, over those named as
     drawn, the spread of the estimates against the reported std (module docstring)."""
     from scipy.stats import chi2
 
-    good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
+    good = _named_as_drawn(rows, drawn)
     out: dict[str, Any] = {"seed": rows[0]["seed"], "realizations": len(rows),
                            "named_as_drawn": len(good), "parameters": {}}
     if len(good) < 2:
@@ -164,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         rows = [one(s, args.friction, Path(tmp), args.init_window, args.sensor_lag,
                     args.lag_candidate, signed=args.signed) for s in args.seeds]
-    good = [r for r in rows if sorted(r["accepted"]) == sorted(drawn)]
+    good = _named_as_drawn(rows, drawn)
     summary = {"drives": len(rows), "named_as_drawn": len(good),
                "test_fit_above_95": sum(r["test_fit_percent"] > 95.0 for r in rows),
                "better_than_reference": sum(
