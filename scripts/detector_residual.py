@@ -234,6 +234,10 @@ def main() -> int:
                     help="start a new detector (node defaults) every this many seconds of "
                     "each recording, to count the first minutes after many starts (0: one "
                     "start per recording)")
+    ap.add_argument("--carry-s", type=float, default=0.0,
+                    help="with --restart-s: the first this many seconds of each recording run "
+                    "one detector whose colour (ChangeDetector.carry) every start on the rest "
+                    "of it carries in (a node restarted with detector.colour_file); 0: none")
     ap.add_argument("--node-only", action="store_true",
                     help="count the node defaults' false alarms only (no residual figures, no "
                     "colour_s 0 variants)")
@@ -245,8 +249,11 @@ def main() -> int:
     def say(*args: object) -> None:
         print(*args, file=out)
 
+    if a.carry_s and not (a.restart_s > 0 and a.node_only and a.carry_s < a.seconds):
+        ap.error("--carry-s needs --restart-s, --node-only and a value below --seconds")
     figures: dict[str, object] = {"seeds": a.seeds, "seconds_each": a.seconds, "outputs": {},
-                                  "false_alarms": [], "restart_s": a.restart_s}
+                                  "false_alarms": [], "restart_s": a.restart_s,
+                                  "carry_s": a.carry_s}
     with ProcessPoolExecutor(2) as pool:
         recs = list(pool.map(record, a.seeds, [a.seconds] * len(a.seeds)))
     setup = detector_config({})
@@ -296,14 +303,27 @@ def main() -> int:
         alarms, tested = [0, 0, 0], [0, 0, 0]
         starts = 0
         restart = a.restart_s if learn_s is None else 0.0
-        for r in recs:
-            det, t0 = ChangeDetector(setting), r[0, 0]
+        for seed, r in zip(a.seeds, recs, strict=True):
+            carried = None
+            if a.carry_s:  # an earlier run of the same plant and model: its colour carried
+                earlier = ChangeDetector(setting)
+                for row in r[r[:, 0] - r[0, 0] < a.carry_s].tolist():
+                    earlier.update(row[0], row[1:])
+                carried = earlier.carry()
+                if carried is None:
+                    raise SystemExit(f"seed {seed}: no full colour in the first "
+                                     f"{a.carry_s:g} s (--carry-s below detector.colour_s?)")
+                r = r[r[:, 0] - r[0, 0] >= a.carry_s]
+            det, t0 = ChangeDetector(setting, carried), r[0, 0]
             starts += 1
             for row in r.tolist():
                 if restart > 0 and row[0] - t0 >= restart:  # a new start of the node
-                    det, t0 = ChangeDetector(setting), row[0]
+                    det, t0 = ChangeDetector(setting, carried), row[0]
                     starts += 1
-                phase = int(det.colour_in_use) + int(det.colour_complete)
+                if carried is not None:  # the first minute, minutes 1-5 and the own colour
+                    phase = (0 if row[0] - t0 < 60.0 else 1) if det.colour_carried else 2
+                else:
+                    phase = int(det.colour_in_use) + int(det.colour_complete)
                 before = det.counters.tested
                 alarms[phase] += det.update(row[0], row[1:]) is not None
                 tested[phase] += det.counters.tested - before
@@ -311,7 +331,9 @@ def main() -> int:
             hours = tested[phase] / setting.sample_rate_hz / 3600
             what = ("" if learn_s is not None else
                     (", before the colour", ", with the colour on a shorter history",
-                     ", with the colour")[phase])
+                     ", with the colour")[phase] if not a.carry_s else
+                    (", the first minute with the carried colour",
+                     ", minutes 1-5 with the carried colour", ", with its own colour")[phase])
             say(f"  {label}{what}: " + rate_line(alarms[phase], hours)
                 + (f" ({starts} starts)" if learn_s is None else ""))
             figures["false_alarms"].append({  # type: ignore[attr-defined]

@@ -14,7 +14,9 @@ summary.json), ``identify`` (``dvt-bench identify --json``),
 randomised clean plants of tests/test_false_effects.py), ``detector`` (the change detector's
 false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``),
 ``detector_starts`` (its first minutes after 150 starts, the same script), ``detector_first``
-(its first minute, before the colour, after 400 starts, the same script), ``secant`` (the
+(its first minute, before the colour, after 400 starts, the same script),
+``detector_carried`` (the first minute with a colour carried from an earlier run, 560 starts,
+the same script), ``secant`` (the
 compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
 (hidden effects on fresh draws of the friction presets, ``scripts/effect_draws.py``),
 ``draws_other`` (the same on the plant's other presets), ``dry_step``
@@ -135,6 +137,11 @@ DETECTOR_FIRST_ARGS = ["--seeds", *(str(s) for s in range(5100, 5120)), "--secon
                        "--restart-s", "60", "--node-only", "--json"]
 """``detector_first``: 20 clean plants of 20 min, a new detector every minute (400 starts, each
 tested until its first colour: the first minute after a start, docs/loop.md "Limits")."""
+DETECTOR_CARRIED_ARGS = ["--seeds", *(str(s) for s in range(5200, 5240)), "--seconds", "1200",
+                         "--restart-s", "60", "--carry-s", "360", "--node-only", "--json"]
+"""``detector_carried``: 40 other clean plants of 20 min; the first 6 min of each learn a colour
+that every start on the rest carries in, a new detector every minute (560 starts: the first
+minute with a carried colour, docs/loop.md "Limits")."""
 
 
 def _script(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
@@ -159,6 +166,7 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "detector": _script("scripts/detector_residual.py", *DETECTOR_ARGS),
     "detector_starts": _script("scripts/detector_residual.py", *DETECTOR_STARTS_ARGS),
     "detector_first": _script("scripts/detector_residual.py", *DETECTOR_FIRST_ARGS),
+    "detector_carried": _script("scripts/detector_residual.py", *DETECTOR_CARRIED_ARGS),
     "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
     "draws_other": _script("scripts/effect_draws.py", "--presets", "other", "--json"),

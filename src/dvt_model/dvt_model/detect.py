@@ -86,9 +86,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -641,15 +643,129 @@ def warm_up(config: DetectorConfig) -> None:
         reference_from_window(window, config, colour)
 
 
+CARRIED_FORMAT = "dvt-detector-colour/1"
+"""``format`` of a carried colour's file (:meth:`CarriedColour.save`)."""
+
+
+@dataclass(frozen=True)
+class CarriedColour:
+    """The residual's colour of an earlier run, carried to the next start of the same model
+    (``docs/loop.md``, "The first minute"): the AR coefficients ``a_1..a_p`` per output
+    (:func:`ar_by_aic`) fitted on ``samples`` samples (at least ``colour_s``) of residual at
+    ``sample_rate_hz`` [Hz], up to ``order_max`` lags, for the outputs ``names``; ``model`` names
+    the model whose residual it is (the model node: :func:`dvt_model.config.model_key`)."""
+
+    names: tuple[str, ...]
+    sample_rate_hz: float
+    order_max: int
+    samples: int
+    coef: tuple[tuple[float, ...], ...]
+    model: str = ""
+
+    def mismatch(self, config: DetectorConfig, model: str | None = None) -> str | None:
+        """Why this colour cannot whiten a detector of ``config`` running ``model`` (``None``:
+        any model), or ``None`` when it can."""
+        if config.colour_s <= 0:
+            return "the detector learns no colour (detector.colour_s is 0)"
+        if tuple(config.names) != tuple(self.names):
+            return f"outputs {list(self.names)}, the detector's {list(config.names)}"
+        if not math.isclose(self.sample_rate_hz, config.sample_rate_hz, rel_tol=1e-9):
+            return (f"sample_rate_hz {self.sample_rate_hz:g}, the detector's "
+                    f"{config.sample_rate_hz:g} (detector.sample_rate_hz / block)")
+        if self.order_max != config.colour_order_max:
+            return (f"order_max {self.order_max}, the detector's {config.colour_order_max} "
+                    "(detector.colour_lag_s)")
+        if self.samples < config.colour_samples:
+            return (f"samples {self.samples}: fitted on less than detector.colour_s "
+                    f"({config.colour_samples} samples)")
+        if model is not None and self.model != model:
+            return f"model {self.model!r}, the model in use {model!r}"
+        return None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (JSON-ready), with ``format`` :data:`CARRIED_FORMAT`."""
+        return {"format": CARRIED_FORMAT, "names": list(self.names),
+                "sample_rate_hz": self.sample_rate_hz, "order_max": self.order_max,
+                "samples": self.samples, "model": self.model,
+                "coef": [list(c) for c in self.coef]}
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "colour") -> CarriedColour:
+        """Inverse of :meth:`to_dict`; raises :class:`ParameterError` naming ``source``, the
+        field and the value (a wrong format, a missing field, a non-finite or non-stationary
+        coefficient list, one per output)."""
+        if not isinstance(data, dict):
+            raise ParameterError(f"{source}: expected a JSON object, got {type(data).__name__}")
+        if data.get("format") != CARRIED_FORMAT:
+            raise ParameterError(f"{source}: format: expected {CARRIED_FORMAT!r}, got "
+                                 f"{data.get('format')!r}")
+        for key in ("names", "sample_rate_hz", "order_max", "samples", "coef"):
+            if key not in data:
+                raise ParameterError(f"{source}: field {key!r} missing")
+        names, coef = data["names"], data["coef"]
+        if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+            raise ParameterError(f"{source}: names: expected a list of output names, got "
+                                 f"{names!r}")
+        if not isinstance(coef, list) or len(coef) != len(names):
+            raise ParameterError(f"{source}: coef: expected {len(names)} coefficient lists "
+                                 f"(one per output of names), got {coef!r:.80}")
+        rate, order, samples = data["sample_rate_hz"], data["order_max"], data["samples"]
+        if isinstance(rate, bool) or not isinstance(rate, int | float) or not rate > 0:
+            raise ParameterError(f"{source}: sample_rate_hz: expected a positive number, got "
+                                 f"{rate!r}")
+        for key, v in (("order_max", order), ("samples", samples)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ParameterError(f"{source}: {key}: expected a positive integer, got {v!r}")
+        out = []
+        for name, c in zip(names, coef, strict=True):
+            if not isinstance(c, list) or len(c) > order or not all(
+                    not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x)
+                    for x in c):
+                raise ParameterError(f"{source}: coef[{name}]: expected at most {order} finite "
+                                     f"numbers, got {c!r:.80}")
+            if c and not float(np.sum(c)) < 1.0:
+                raise ParameterError(f"{source}: coef[{name}]: not stationary (coefficients "
+                                     f"sum to {float(np.sum(c)):g}, at least 1)")
+            out.append(tuple(float(x) for x in c))
+        return cls(names=tuple(names), sample_rate_hz=float(rate), order_max=order,
+                   samples=samples, coef=tuple(out), model=str(data.get("model", "")))
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write :meth:`to_dict` as JSON to ``path`` (a temporary file renamed over it: a
+        reader never sees half a file)."""
+        target = Path(path)
+        tmp = target.with_name(target.name + ".tmp")
+        tmp.write_text(json.dumps(self.to_dict()))
+        os.replace(tmp, target)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> CarriedColour:
+        """Read a file :meth:`save` wrote; :class:`ParameterError` naming the path (unreadable,
+        not JSON, or a bad field: :meth:`from_dict`)."""
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise ParameterError(f"{path}: cannot read a carried colour: {exc}") from exc
+        return cls.from_dict(data, str(path))
+
+
 # -------------------------------------------------------------------------- the detector
 class ChangeDetector:
     """Sequential change detector on the residual vector (see the module docstring).
 
     ``update(stamp_s, residual)`` per sample; ``reset()`` after the model changed (e.g. a push);
     ``counters`` and ``references`` for diagnostics. Not thread-safe.
+
+    ``carried``: the colour of an earlier run of the same model (:meth:`carry`), used from the
+    first reference window on until this run's own history reaches ``colour_s`` (then its own
+    full colour replaces it, as below); each reference window it whitens designs ``h`` over
+    the long-run variance ratio of that window whitened by it, with its uncertainty (out of
+    sample: the carried colour never saw this run). :class:`ParameterError` when it does not
+    fit ``config`` (:meth:`CarriedColour.mismatch`).
     """
 
-    def __init__(self, config: DetectorConfig | None = None) -> None:
+    def __init__(self, config: DetectorConfig | None = None,
+                 carried: CarriedColour | None = None) -> None:
         self.config = (config or DetectorConfig()).validated()
         self.n = len(self.config.names)
         self._L = self.config.learn_samples
@@ -695,6 +811,13 @@ class ChangeDetector:
         self._ring = np.zeros((self.n, 2 * max(self._P, 1)))
         self._w = 0
         self._hist = 0
+        self._carried: CarriedColour | None = None
+        if carried is not None:
+            why = carried.mismatch(self.config)
+            if why is not None:
+                raise ParameterError(f"carried colour: {why}")
+            self._carried = carried
+            self._colour = [np.asarray(c, dtype=float) for c in carried.coef]
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -738,6 +861,25 @@ class ChangeDetector:
         return self._order > 0 and self._colour_used_n >= self.config.colour_samples
 
     @property
+    def colour_carried(self) -> bool:
+        """Whether the colour in use is one carried from an earlier run (until this run's own
+        history reaches ``colour_s``)."""
+        return self._carried is not None
+
+    def carry(self, model: str = "") -> CarriedColour | None:
+        """The colour to carry to the next start of ``model``: this run's own once fitted on
+        the full ``colour_s``, else the one carried in if still in use, else ``None``."""
+        if self._carried is not None:
+            return self._carried
+        if self._colour is None or self._colour_fit_n < self.config.colour_samples:
+            return None
+        cfg = self.config
+        return CarriedColour(names=tuple(cfg.names), sample_rate_hz=cfg.sample_rate_hz,
+                             order_max=self._P, samples=self._colour_fit_n,
+                             coef=tuple(tuple(float(x) for x in a) for a in self._colour),
+                             model=model)
+
+    @property
     def colour_history_s(self) -> float:
         """Residual history pooled for the long-window whitening [s] (whole chunks only)."""
         return sum(m for _, m, _ in self._pool) / self.config.sample_rate_hz
@@ -769,6 +911,7 @@ class ChangeDetector:
         out = {"state": "learning" if self.learning else "testing",
                "learn_progress": f"{self.learn_progress:.2f}",
                "colour_progress": f"{self.colour_progress:.2f}",
+               "colour_carried": str(self.colour_carried).lower(),
                "samples": str(c.samples), "tested": str(c.tested), "skipped": str(c.skipped),
                "gaps": str(c.gaps), "alarms": str(c.alarms),
                "false_alarm_period_s": f"{self.config.false_alarm_period_s:g}"}
@@ -941,11 +1084,12 @@ class ChangeDetector:
         total = sum(mm for _, mm, _ in self._pool)
         while self._pool and total - self._pool[0][1] >= need:
             total -= self._pool.popleft()[1]
-        if total < min(need, self._chunk_len):
-            return False
+        if total < min(need, self._chunk_len) or (self._carried is not None and total < need):
+            return False  # a carried colour stays until this run's own history is full
         acov = np.sum([pp for _, _, pp in self._pool], axis=0) / total
         first = self._colour is None
         previous = self._colour
+        self._carried = None
         self._colour = [ar_by_aic(acov[i], total, P) for i in range(self.n)]
         self._colour_fit_n = total
         self.counters.colour_fits += 1
@@ -986,6 +1130,11 @@ class ChangeDetector:
 
     def _finish_learning(self, count: bool = True) -> None:
         colour = self._colour
+        if self._carried is not None and colour is not None:
+            # how far the carried colour whitens this run: this window whitened by it
+            self._colour_lam = [long_run_spread(_ar_whiten(np.asarray(self._buf[i]), colour[i]),
+                                                self.config.sample_rate_hz)
+                                for i in range(self.n)]
         refs = [reference_from_window(np.asarray(self._buf[i]), self.config,
                                       None if colour is None else colour[i],
                                       self._colour_lam[i] if colour is not None else
