@@ -6,6 +6,7 @@ import json
 import math
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -467,6 +468,57 @@ def test_change_detector_wiring(procs, rclpy_context, tmp_path):
     assert listener.set_param("params", "thesis").successful
     listener.spin_until(lambda: statuses[-1].get("resets") == "1", 5.0, "a detector reset")
     assert statuses[-1]["state"] in ("learning", "settling"), statuses[-1]
+    assert node.poll() is None
+
+
+def test_colour_file_carries_the_colour_into_a_start(procs, rclpy_context, tmp_path):
+    """``detector.colour_file``: a colour file of the model in use (as the node writes it,
+    :class:`dvt_model.detect.ColourKeeper`) whitens the first reference window (status
+    ``colour_carried`` true, ``ar_order`` its order, the file named); one of another model is
+    not used, with the reason and the path in the log, and the node runs without it."""
+    from dvt_model.config import detector_config, model_key
+    from dvt_model.detect import CarriedColour
+    from dvt_model.node import DETECTOR_STATUS
+
+    args = {"detector.learn_s": 1.0, "detector.settle_s": 0.2}
+    setup = detector_config(args)
+    assert setup is not None
+    cfg = setup.config
+    colour = CarriedColour(names=tuple(cfg.names), sample_rate_hz=cfg.sample_rate_hz,
+                           order_max=cfg.colour_order_max, samples=cfg.colour_samples,
+                           coef=((0.6, 0.1), (0.5,)), model="another model")
+    path = tmp_path / "colour.json"
+    colour.save(path)
+    ros_args = ["--ros-args", "-p", "detector.learn_s:=1.0", "-p", "detector.settle_s:=0.2",
+                "-p", f"detector.colour_file:={path}"]
+    other = procs.start("dvt_model_node", *ros_args)
+    wait_for(lambda: "detector.colour_file" in procs.log(other), 30.0, "the colour file's line")
+    line = next(x for x in procs.log(other).splitlines() if "detector.colour_file" in x)
+    assert "not used, learning the colour anew" in line and str(path) in line, line
+    assert "model 'another model'" in line, line
+    assert other.poll() is None
+    procs.stop(other)
+
+    replace(colour, model=model_key({})).save(path)
+    bag = _simulated_bag(tmp_path / "run", seconds=3.0)
+    listener = _Listener(rclpy_context)
+    statuses: list[dict[str, str]] = []
+    listener.node.create_subscription(
+        DiagnosticArray, DIAGNOSTICS,
+        lambda m: statuses.extend({kv.key: kv.value for kv in st.values}
+                                  for st in m.status if st.name == DETECTOR_STATUS), 50)
+    node = procs.start("dvt_model_node", *ros_args)
+    listener.spin_until(lambda: listener.node.count_publishers(MODEL_RESIDUAL) > 0,
+                        20.0, "model node publishers")
+    replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")
+    listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")
+    listener.spin_until(lambda: statuses and int(statuses[-1].get("tested", "0")) > 0, 15.0,
+                        "the detector testing the replayed residual")
+    last = statuses[-1]
+    assert last["state"] == "testing" and last["colour_carried"] == "true", last
+    assert last["sun_shaft.ar_order"] == "2" and last["carrier3.ar_order"] == "1", last
+    assert last["colour_file"] == str(path) and last["colour_file_saves"] == "0", last
+    assert "colour carried in" in procs.log(node)
     assert node.poll() is None
 
 

@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
+import json
 from collections.abc import Callable, Mapping, Sized
 from dataclasses import dataclass
 from typing import Any, Final
@@ -219,11 +221,14 @@ class DetectorSetup:
         config: the detector's settings at the block rate (``sample_rate_hz`` is
             ``detector.sample_rate_hz / block``).
         settle_s: wait after an anchor of the model before learning [s].
+        colour_file: the file that carries the colour between runs ("": none;
+            :class:`dvt_model.detect.ColourKeeper`).
     """
 
     block: int
     config: DetectorConfig
     settle_s: float = 3.0
+    colour_file: str = ""
 
 
 def _detector(v: Mapping[str, Any]) -> DetectorSetup | None:
@@ -241,8 +246,20 @@ def _detector(v: Mapping[str, Any]) -> DetectorSetup | None:
         raise ParameterError(f"{p}max_gap_s: expected more than one detector sample period "
                              f"({block / rate:g} s with {p}block_s = {v[p + 'block_s']:g} s), "
                              f"got {cfg.max_gap_s:g}")
-    return (DetectorSetup(block=block, config=cfg, settle_s=float(v[p + "settle_s"]))
+    return (DetectorSetup(block=block, config=cfg, settle_s=float(v[p + "settle_s"]),
+                          colour_file=str(v[p + "colour_file"]))
             if v[p + "enabled"] else None)
+
+
+def model_key(values: Mapping[str, Any]) -> str:
+    """A short digest of the model-node parameters other than the detector's (merged onto the
+    defaults): the key under which a carried colour belongs to the model whose residual it
+    is (:class:`dvt_model.detect.ColourKeeper`). A file named by ``params`` or ``load``
+    counts by its name, not its content."""
+    v = normalise(values)
+    model = {k: v[k] for k in sorted(v) if not k.startswith(DETECTOR_PREFIX + ".")}
+    text = json.dumps(model, sort_keys=True, default=list)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def detector_config(values: Mapping[str, Any]) -> DetectorSetup | None:

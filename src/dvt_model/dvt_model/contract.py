@@ -839,6 +839,11 @@ MODEL_PARAMETERS: dict[str, NodeParam] = {p.name: p for p in (
     NodeParam(f"{DETECTOR_PREFIX}.colour_lag_s", "double", "s",
               "longest lag of that whitening (at most half of learn_s is used); read-only", 3.0,
               lo=0.0, hi=600.0, lo_open=True),
+    NodeParam(f"{DETECTOR_PREFIX}.colour_file", "string", "-",
+              "file that carries the residual's colour to the next start of the same model "
+              "(written once a minute when the colour has colour_s of this model's residual; "
+              "read at start: the first reference window is then whitened by it); empty = "
+              "none; read-only", "", max_chars=4096),
 )}
 """Every parameter of the model node (:data:`MODEL_NODE`), by name, in declaration order."""
 DETECTOR_PARAMETERS: tuple[str, ...] = tuple(

@@ -749,6 +749,70 @@ class CarriedColour:
         return cls.from_dict(data, str(path))
 
 
+class ColourKeeper:
+    """Carries a detector's colour between runs of the same model in one file (the model
+    node's ``detector.colour_file``; ``docs/loop.md``, "The first minute").
+
+    :meth:`load` at a start gives the colour to carry in (or why none); :meth:`after_update`
+    after each detector sample writes the detector's own full colour (:meth:`ChangeDetector.
+    carry`) whenever it is refitted (once a minute), once the model in use (``model``, a key
+    such as :func:`dvt_model.config.model_key`) has run ``colour_s`` of residual: the colour
+    is kept across model changes, so until then it may hold the residual of the model before;
+    :meth:`model_changed` on every model change. ``saves`` counts the files written.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], model: str) -> None:
+        self.path = Path(path)
+        self.model = model
+        self.saves = 0
+        self._samples = 0  # detector samples of the model in use
+        self._fits = 0
+
+    def load(self, config: DetectorConfig) -> tuple[CarriedColour | None, str]:
+        """The colour the file carries for ``config`` and the model in use, or ``None``, with
+        one line for the log that says which and why (a missing file: none yet; a bad or
+        unfitting one: why it is not used; the file itself is left as it is)."""
+        if not self.path.exists():
+            return None, (f"detector.colour_file: {self.path}: no colour carried yet (written "
+                          f"once the colour has {config.colour_s:g} s of this model's residual)")
+        try:
+            carried = CarriedColour.load(self.path)
+        except ParameterError as exc:
+            return None, f"detector.colour_file: not used, learning the colour anew: {exc}"
+        why = carried.mismatch(config, self.model)
+        if why is not None:
+            return None, (f"detector.colour_file: {self.path}: not used, learning the colour "
+                          f"anew: {why}")
+        return carried, (f"detector.colour_file: {self.path}: colour carried in (fitted on "
+                         f"{carried.samples / config.sample_rate_hz:g} s of residual)")
+
+    def model_changed(self, model: str) -> None:
+        """A new model is in use from the next sample on."""
+        self.model = model
+        self._samples = 0
+
+    def after_update(self, detector: ChangeDetector) -> str | None:
+        """After each ``detector.update``: write its own full colour if it was just refitted
+        and the model in use has given ``colour_s`` of samples; returns an error line if the
+        file cannot be written (nothing else is lost), else ``None``."""
+        self._samples += 1
+        fits = detector.counters.colour_fits
+        if fits == self._fits:
+            return None
+        self._fits = fits
+        if detector.colour_carried or self._samples < detector.config.colour_samples:
+            return None
+        carried = detector.carry(self.model)
+        if carried is None:
+            return None
+        try:
+            carried.save(self.path)
+        except OSError as exc:
+            return f"detector.colour_file: {self.path}: cannot write the colour: {exc}"
+        self.saves += 1
+        return None
+
+
 # -------------------------------------------------------------------------- the detector
 class ChangeDetector:
     """Sequential change detector on the residual vector (see the module docstring).

@@ -130,6 +130,7 @@ from dvt_model.config import (
     ModelTransaction,
     build_predictor,
     detector_config,
+    model_key,
     model_transaction,
     partner_clears,
 )
@@ -151,7 +152,7 @@ from dvt_model.contract import (
     NodeParam,
     model_reset_detector_service,
 )
-from dvt_model.detect import Alarm, ChangeDetector, warm_up
+from dvt_model.detect import Alarm, ChangeDetector, ColourKeeper, warm_up
 from dvt_model.errors import DvtModelError
 from dvt_model.predictor import Predictor, ResidualBlocks
 from dvt_model.recording import cdr
@@ -357,9 +358,16 @@ class ModelNode(Node):
         self._settle_until = -float("inf")  # stamp [s] before which the detector waits
         self._last_stamp = -float("inf")
         self.anchor_restarts = 0
+        self.keeper: ColourKeeper | None = None
         if setup is not None:
             self.settle_s = setup.settle_s
-            self.detector = ChangeDetector(setup.config)
+            carried = None
+            if setup.colour_file:
+                self.keeper = ColourKeeper(setup.colour_file, model_key(self._values()))
+                carried, line = self.keeper.load(setup.config)
+                (self.get_logger().info if carried is not None or "no colour carried yet"
+                 in line else self.get_logger().warning)(line)
+            self.detector = ChangeDetector(setup.config, carried)
             warm_up(setup.config)
             self.blocks = ResidualBlocks(setup.block, len(SPEED_NAMES),
                                          setup.config.max_gap_s)
@@ -448,6 +456,8 @@ class ModelNode(Node):
         self._guard_before += self.predictor.guard_reanchors
         self._gap_before += self.predictor.gap_anchors
         self.predictor, self.model_desc = tx.predictor, tx.description
+        if self.keeper is not None:
+            self.keeper.model_changed(model_key(self._values()))
         # a push or rollback: learn the new model's residual (the last alarm's WARN hold stays)
         self._reset_detector("model")
         self.get_logger().info(f"model changed ({', '.join(tx.changed)}): "
@@ -506,6 +516,10 @@ class ModelNode(Node):
                 alarm = self.detector.update(block[0], block[1])
                 if alarm is not None:
                     self._on_alarm(alarm)
+                if self.keeper is not None:
+                    error = self.keeper.after_update(self.detector)
+                    if error is not None:
+                        self.get_logger().warning(error)
 
     def _restart_detector(self, stamp: float) -> None:
         """The model was anchored to the measurement at ``stamp`` [s]: wait ``settle_s``, then
@@ -584,6 +598,9 @@ class ModelNode(Node):
         values["resets"] = str(self.detector_resets)
         values["requested_resets"] = str(self.requested_resets)
         values["anchor_restarts"] = str(self.anchor_restarts)
+        if self.keeper is not None:
+            values["colour_file"] = str(self.keeper.path)
+            values["colour_file_saves"] = str(self.keeper.saves)
         if det.learning and self._last_stamp < self._settle_until:
             values["state"] = "settling"
         last = det.counters.last_alarm

@@ -6,7 +6,14 @@ import time
 import numpy as np
 import pytest
 
-from dvt_model.config import build_predictor, check_parameters, defaults, resolve
+from dvt_model.config import (
+    build_predictor,
+    check_parameters,
+    defaults,
+    detector_config,
+    model_key,
+    resolve,
+)
 from dvt_model.contract import GAP_REANCHOR_S, GAP_RESET_S, MAX_EFFECT_TERMS, MODEL_PARAMETERS
 from dvt_model.errors import DvtModelError
 from dvt_model.hybrid import HybridModel
@@ -114,6 +121,8 @@ BAD = [
     ("detector.colour_s", {"detector.colour_s": -1.0}, r"\[0, 86400\]"),
     ("detector.colour_s", {"detector.colour_s": 10.0}, "at least 10 x the longest lag"),
     ("detector.colour_lag_s", {"detector.colour_lag_s": 0.0}, r"\(0, 600\]"),
+    ("detector.colour_file", {"detector.colour_file": 3.0}, "detector.colour_file"),
+    ("detector.colour_file", {"detector.colour_file": "x" * 5000}, "detector.colour_file"),
     ("brake_gain", {"brake_gain": [8.0, 8.0, 8.0]}, "unknown parameter"),
     ("no_such_parameter", {"no_such_parameter": 1.0}, "unknown parameter"),
 ]
@@ -238,3 +247,17 @@ def test_detector_settings_from_parameters():
         check_parameters({"detector.max_gap_s": 0.005})
     with pytest.raises(DvtModelError, match=r"detector\.shift_sigma: -1"):
         check_parameters({"detector.shift_sigma": -1})
+
+
+def test_model_key_follows_the_model_not_the_detector() -> None:
+    """The key a carried colour belongs to (detector.colour_file): the detector's settings do
+    not change it, a model parameter does; the defaults given or left out are the same."""
+    base = model_key({})
+    assert base == model_key(defaults())
+    assert base == model_key({"detector.learn_s": 30.0, "detector.colour_file": "/tmp/c.json"})
+    assert base != model_key({"params": "thesis"})
+    assert base != model_key({"mode": "reanchor"})
+    setup = detector_config({"detector.colour_file": "/tmp/c.json"})
+    assert setup is not None and setup.colour_file == "/tmp/c.json"
+    setup = detector_config({})
+    assert setup is not None and setup.colour_file == ""

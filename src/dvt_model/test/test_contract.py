@@ -25,7 +25,8 @@ def test_schema_names_and_defaults():
                                       "detector.learn_s",
                                       "detector.shift_sigma", "detector.false_alarm_period_s",
                                       "detector.max_gap_s", "detector.max_phi",
-                                      "detector.colour_s", "detector.colour_lag_s"]
+                                      "detector.colour_s", "detector.colour_lag_s",
+                                          "detector.colour_file"]
     for name, spec in MODEL_PARAMETERS.items():
         assert spec.name == name
         assert spec.description and spec.unit

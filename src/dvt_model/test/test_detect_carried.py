@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from dvt_model.detect import CARRIED_FORMAT, CarriedColour, ChangeDetector, DetectorConfig
+from dvt_model.detect import (
+    CARRIED_FORMAT,
+    CarriedColour,
+    ChangeDetector,
+    ColourKeeper,
+    DetectorConfig,
+)
 from dvt_model.errors import ParameterError
 
 RATE = 100.0  # Hz: the model node's detector rate (10-ms blocks)
@@ -148,3 +154,82 @@ def test_a_colour_of_other_settings_or_another_model_is_refused() -> None:
     assert "learns no colour" in str(carried.mismatch(replace(cfg, colour_s=0.0)))
     with pytest.raises(ParameterError, match="carried colour: outputs"):
         ChangeDetector(replace(cfg, names=("a", "b", "c")), carried)
+
+
+# -- the keeper: the file between runs (the model node's detector.colour_file) ------------------
+
+def test_the_keeper_writes_the_own_full_colour_and_the_next_start_carries_it(
+        tmp_path: Path) -> None:
+    path = tmp_path / "colour.json"
+    cfg = config()
+    keeper = ColourKeeper(path, "model-a")
+    carried, line = keeper.load(cfg)
+    assert carried is None and "no colour carried yet" in line and str(path) in line
+    det = ChangeDetector(cfg)
+    x = coloured(np.random.default_rng(6), round(190 * RATE))
+    written = []  # (sample, saves) whenever a file is written
+    for j, row in enumerate(x.tolist()):
+        det.update(j / RATE, row)
+        assert keeper.after_update(det) is None
+        if not written or keeper.saves != written[-1][1]:
+            written.append((j, keeper.saves))
+    # the colour fits at 60, 120, 180 s; the full one (120 s of history) from 120 s on
+    assert written == [(0, 0), (round(120 * RATE) - 1, 1), (round(180 * RATE) - 1, 2)], written
+    carried, line = ColourKeeper(path, "model-a").load(cfg)
+    assert carried == det.carry("model-a") and "colour carried in" in line
+    nxt = ChangeDetector(cfg, carried)
+    assert nxt.colour_carried
+    # a carried colour in use is not written again: nothing new
+    again = ColourKeeper(path, "model-a")
+    for j, row in enumerate(x[: round(70 * RATE)].tolist()):
+        nxt.update(j / RATE, row)
+        again.after_update(nxt)
+    assert again.saves == 0 and nxt.counters.colour_fits == 0
+
+
+def test_the_keeper_writes_nothing_until_the_new_model_had_colour_s(tmp_path: Path) -> None:
+    """After a model change the colour still holds the old model's residual for up to
+    ``colour_s``: no file until the new model has run that long."""
+    path = tmp_path / "colour.json"
+    cfg = config()
+    keeper = ColourKeeper(path, "model-a")
+    det = ChangeDetector(cfg)
+    x = coloured(np.random.default_rng(7), round(300 * RATE))
+    for j, row in enumerate(x.tolist()):
+        t = j / RATE
+        if j == round(130 * RATE):  # a push at 130 s (after the first file)
+            det.reset()
+            keeper.model_changed("model-b")
+            saves = keeper.saves
+        det.update(t, row)
+        keeper.after_update(det)
+        if 130 * RATE <= j < 250 * RATE - 1:  # 120 s of model b (its two chunks, the one
+            # in progress at the push dropped): nothing written for it before
+            assert keeper.saves == saves, j
+    assert saves == 1 and keeper.saves > saves
+    assert CarriedColour.load(path).model == "model-b"
+
+
+def test_the_keeper_says_why_a_file_is_not_used_and_keeps_it(tmp_path: Path) -> None:
+    path = tmp_path / "colour.json"
+    earlier_run().save(path)
+    text = path.read_text()
+    carried, line = ColourKeeper(path, "model-b").load(config())
+    assert carried is None and "not used, learning the colour anew" in line
+    assert "the model in use 'model-b'" in line and str(path) in line
+    path.write_text("{}")
+    carried, line = ColourKeeper(path, "model-a").load(config())
+    assert carried is None and "format" in line and str(path) in line
+    assert path.read_text() == "{}"  # left as it is
+    path.write_text(text)
+    bad_dir = tmp_path / "missing-dir" / "colour.json"
+    keeper = ColourKeeper(bad_dir, "model-a")
+    det = ChangeDetector(config())
+    errors = []
+    for j, row in enumerate(coloured(np.random.default_rng(8), round(125 * RATE)).tolist()):
+        det.update(j / RATE, row)
+        err = keeper.after_update(det)
+        if err is not None:
+            errors.append(err)
+    assert len(errors) == 1 and "cannot write the colour" in errors[0] and str(bad_dir) in errors[0]
+    assert keeper.saves == 0 and det.carry() is not None  # the detector goes on
