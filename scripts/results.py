@@ -16,7 +16,7 @@ false alarms on 8 clean simulated plants, ``scripts/detector_residual.py``),
 ``detector_starts`` (its first minutes after 150 starts, the same script), ``detector_first``
 (its first minute, before the colour, after 400 starts, the same script),
 ``detector_carried`` (the first minute with a colour carried from an earlier run, 560 starts,
-the same script), ``secant`` (the
+the same script), ``detector_carried_starts`` (its first 6 minutes, 120 starts), ``secant`` (the
 compliant play's secant share on ``ident-backlash``, ``scripts/secant_sweep.py``), ``draws``
 (hidden effects on fresh draws of the friction presets, ``scripts/effect_draws.py``),
 ``draws_other`` (the same on the plant's other presets), ``dry_step``
@@ -142,6 +142,12 @@ DETECTOR_CARRIED_ARGS = ["--seeds", *(str(s) for s in range(5200, 5240)), "--sec
 """``detector_carried``: 40 other clean plants of 20 min; the first 6 min of each learn a colour
 that every start on the rest carries in, a new detector every minute (560 starts: the first
 minute with a carried colour, docs/loop.md "Limits")."""
+DETECTOR_CARRIED_STARTS_ARGS = [
+    "--seeds", *(str(s) for s in range(4100, 4130)), "--seconds", "1800", "--restart-s", "360",
+    "--carry-s", "360", "--node-only", "--json"]
+"""``detector_carried_starts``: 30 other clean plants of 30 min; the first 6 min of each learn a
+colour that every start on the rest carries in, a new detector every 6 min (120 starts: the
+first minute and minutes 1-5 with a carried colour, then the run's own)."""
 
 
 def _script(*args: str) -> Callable[[], tuple[list[str], dict[str, Any]]]:
@@ -167,6 +173,8 @@ NAMES: dict[str, Callable[[], tuple[list[str], dict[str, Any]]]] = {
     "detector_starts": _script("scripts/detector_residual.py", *DETECTOR_STARTS_ARGS),
     "detector_first": _script("scripts/detector_residual.py", *DETECTOR_FIRST_ARGS),
     "detector_carried": _script("scripts/detector_residual.py", *DETECTOR_CARRIED_ARGS),
+    "detector_carried_starts": _script("scripts/detector_residual.py",
+                                       *DETECTOR_CARRIED_STARTS_ARGS),
     "secant": _script("scripts/secant_sweep.py", "--json"),
     "draws": _script("scripts/effect_draws.py", "--json"),
     "draws_other": _script("scripts/effect_draws.py", "--presets", "other", "--json"),
