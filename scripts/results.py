@@ -338,6 +338,15 @@ def _row_detector_first(f: dict[str, Any]) -> tuple[str, str]:
             f"{_alarm_rate(first)}; design 0.25/h")
 
 
+def _row_detector_carried(f: dict[str, Any]) -> tuple[str, str]:
+    rows = f.get("false_alarms") or []
+    first = next((r for r in rows if "the first minute with the carried colour"
+                  in str(r.get("detector", ""))), {})
+    return ("the change detector's first minute after a start with the colour of an earlier "
+            "run (`detector.colour_file`), clean simulated plant "
+            f"({_n(first.get('starts'))} starts)", f"{_alarm_rate(first)}; design 0.25/h")
+
+
 def _row_demo(f: dict[str, Any]) -> tuple[str, str]:
     ident = _get(f, "closed_loop", "identification") or {}
     acc = ident.get("accepted") if isinstance(ident, dict) else None
@@ -391,6 +400,7 @@ ROWS: dict[str, Callable[[dict[str, Any]], tuple[str, str]]] = {
     "model": _row_model, "false_effects": _row_false, "compare": _row_compare,
     "demo": _row_demo, "detector": _row_detector, "detector_starts": _row_detector_starts,
     "detector_first": _row_detector_first,
+    "detector_carried": _row_detector_carried,
     "belt": _row_belt, "draws": _row_draws, "draws_other": _row_draws}
 
 

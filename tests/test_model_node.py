@@ -495,6 +495,7 @@ def test_colour_file_carries_the_colour_into_a_start(procs, rclpy_context, tmp_p
     wait_for(lambda: "detector.colour_file" in procs.log(other), 30.0, "the colour file's line")
     line = next(x for x in procs.log(other).splitlines() if "detector.colour_file" in x)
     assert "not used, learning the colour anew" in line and str(path) in line, line
+    assert "WARN" in line, line  # logged as a warning
     assert "model 'another model'" in line, line
     assert other.poll() is None
     procs.stop(other)

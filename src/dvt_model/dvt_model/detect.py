@@ -72,6 +72,13 @@ sampling uncertainty (:func:`long_run_spread`; the rate averaged over 16 equal-p
 points), higher than the ARMA's design by itself (docs/loop.md "Limits"). With
 ``colour_s`` 0 (no colour ever) each window keeps the ARMA's design.
 
+A colour carried from an earlier run of the same model (:class:`CarriedColour`, written and
+read by :class:`ColourKeeper`: the model node's ``detector.colour_file``) stands in for the
+first minute's and the growing colour: it whitens every reference window from the first on,
+each designing ``h`` over the long-run variance ratio of that window whitened by it, with its
+uncertainty (out of sample), until the run's own history reaches ``colour_s``; then the own
+full colour replaces it with a new reference window (docs/loop.md, "Colour", item 6).
+
 On an alarm the detector returns an :class:`Alarm` (detection stamp, the estimated change time =
 the stamp of the first sample after the CUSUM's last zero, output, direction, estimated shift),
 then re-learns a new reference window and keeps running. Non-finite residuals are skipped;
@@ -762,29 +769,31 @@ class ColourKeeper:
     """
 
     def __init__(self, path: str | os.PathLike[str], model: str) -> None:
-        self.path = Path(path)
+        # a leading ~ is the user's home (a ROS parameter is not expanded by a shell)
+        self.path = Path(path).expanduser()
         self.model = model
         self.saves = 0
         self._samples = 0  # detector samples of the model in use
         self._fits = 0
 
-    def load(self, config: DetectorConfig) -> tuple[CarriedColour | None, str]:
-        """The colour the file carries for ``config`` and the model in use, or ``None``, with
-        one line for the log that says which and why (a missing file: none yet; a bad or
-        unfitting one: why it is not used; the file itself is left as it is)."""
+    def load(self, config: DetectorConfig) -> tuple[CarriedColour | None, str, bool]:
+        """The colour the file carries for ``config`` and the model in use, or ``None``; one
+        line for the log that says which and why; whether that line is a warning (a bad or
+        unfitting file, not used and left as it is; a missing one is the first run's)."""
         if not self.path.exists():
             return None, (f"detector.colour_file: {self.path}: no colour carried yet (written "
-                          f"once the colour has {config.colour_s:g} s of this model's residual)")
+                          f"once the colour has {config.colour_s:g} s of this model's "
+                          "residual)"), False
         try:
             carried = CarriedColour.load(self.path)
         except ParameterError as exc:
-            return None, f"detector.colour_file: not used, learning the colour anew: {exc}"
+            return None, f"detector.colour_file: not used, learning the colour anew: {exc}", True
         why = carried.mismatch(config, self.model)
         if why is not None:
             return None, (f"detector.colour_file: {self.path}: not used, learning the colour "
-                          f"anew: {why}")
+                          f"anew: {why}"), True
         return carried, (f"detector.colour_file: {self.path}: colour carried in (fitted on "
-                         f"{carried.samples / config.sample_rate_hz:g} s of residual)")
+                         f"{carried.samples / config.sample_rate_hz:g} s of residual)"), False
 
     def model_changed(self, model: str) -> None:
         """A new model is in use from the next sample on."""

@@ -364,9 +364,8 @@ class ModelNode(Node):
             carried = None
             if setup.colour_file:
                 self.keeper = ColourKeeper(setup.colour_file, model_key(self._values()))
-                carried, line = self.keeper.load(setup.config)
-                (self.get_logger().info if carried is not None or "no colour carried yet"
-                 in line else self.get_logger().warning)(line)
+                carried, line, warn = self.keeper.load(setup.config)
+                (self.get_logger().warning if warn else self.get_logger().info)(line)
             self.detector = ChangeDetector(setup.config, carried)
             warm_up(setup.config)
             self.blocks = ResidualBlocks(setup.block, len(SPEED_NAMES),

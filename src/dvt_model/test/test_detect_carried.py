@@ -163,8 +163,9 @@ def test_the_keeper_writes_the_own_full_colour_and_the_next_start_carries_it(
     path = tmp_path / "colour.json"
     cfg = config()
     keeper = ColourKeeper(path, "model-a")
-    carried, line = keeper.load(cfg)
+    carried, line, warn = keeper.load(cfg)
     assert carried is None and "no colour carried yet" in line and str(path) in line
+    assert not warn
     det = ChangeDetector(cfg)
     x = coloured(np.random.default_rng(6), round(190 * RATE))
     written = []  # (sample, saves) whenever a file is written
@@ -175,8 +176,8 @@ def test_the_keeper_writes_the_own_full_colour_and_the_next_start_carries_it(
             written.append((j, keeper.saves))
     # the colour fits at 60, 120, 180 s; the full one (120 s of history) from 120 s on
     assert written == [(0, 0), (round(120 * RATE) - 1, 1), (round(180 * RATE) - 1, 2)], written
-    carried, line = ColourKeeper(path, "model-a").load(cfg)
-    assert carried == det.carry("model-a") and "colour carried in" in line
+    carried, line, warn = ColourKeeper(path, "model-a").load(cfg)
+    assert carried == det.carry("model-a") and "colour carried in" in line and not warn
     nxt = ChangeDetector(cfg, carried)
     assert nxt.colour_carried
     # a carried colour in use is not written again: nothing new
@@ -214,12 +215,12 @@ def test_the_keeper_says_why_a_file_is_not_used_and_keeps_it(tmp_path: Path) -> 
     path = tmp_path / "colour.json"
     earlier_run().save(path)
     text = path.read_text()
-    carried, line = ColourKeeper(path, "model-b").load(config())
-    assert carried is None and "not used, learning the colour anew" in line
+    carried, line, warn = ColourKeeper(path, "model-b").load(config())
+    assert carried is None and warn and "not used, learning the colour anew" in line
     assert "the model in use 'model-b'" in line and str(path) in line
     path.write_text("{}")
-    carried, line = ColourKeeper(path, "model-a").load(config())
-    assert carried is None and "format" in line and str(path) in line
+    carried, line, warn = ColourKeeper(path, "model-a").load(config())
+    assert carried is None and warn and "format" in line and str(path) in line
     assert path.read_text() == "{}"  # left as it is
     path.write_text(text)
     bad_dir = tmp_path / "missing-dir" / "colour.json"
@@ -233,3 +234,10 @@ def test_the_keeper_says_why_a_file_is_not_used_and_keeps_it(tmp_path: Path) -> 
             errors.append(err)
     assert len(errors) == 1 and "cannot write the colour" in errors[0] and str(bad_dir) in errors[0]
     assert keeper.saves == 0 and det.carry() is not None  # the detector goes on
+
+
+def test_the_keepers_path_expands_the_home_directory(monkeypatch: pytest.MonkeyPatch,
+                                                      tmp_path: Path) -> None:
+    monkeypatch.setenv("HOME", str(tmp_path))
+    keeper = ColourKeeper("~/colour.json", "model-a")
+    assert keeper.path == tmp_path / "colour.json"
