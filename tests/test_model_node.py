@@ -434,16 +434,11 @@ def test_model_node_predicts_positions_of_the_loaded_plant(procs, rclpy_context,
     assert typical_bare[1] > 3.0 * typical[1], (typical, typical_bare)
 
 
-def test_change_detector_wiring(procs, rclpy_context, tmp_path):
-    """The detector runs on the replayed residual (status in /diagnostics), its parameters are
-    read-only, a model change resets it, and invalid detector settings refuse the start."""
+def _detector_on_replay(procs, rclpy_context, tmp_path, *params):
+    """Start the model node with ``params`` (``-p NAME:=VALUE`` ...), replay a 3-s simulated
+    bag into it and wait until its detector tests; (listener, node process, the detector
+    statuses seen on /diagnostics, newest last)."""
     from dvt_model.node import DETECTOR_STATUS
-
-    bad = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=0.2")
-    wait_for(lambda: bad.poll() is not None, 30.0, "the refused start")
-    assert bad.returncode == 2
-    assert "detector.learn_s: expected at least 100 samples" in procs.log(bad)
-    assert "0.2" in procs.log(bad)
 
     bag = _simulated_bag(tmp_path / "run", seconds=3.0)
     listener = _Listener(rclpy_context)
@@ -452,14 +447,28 @@ def test_change_detector_wiring(procs, rclpy_context, tmp_path):
         DiagnosticArray, DIAGNOSTICS,
         lambda m: statuses.extend({kv.key: kv.value for kv in st.values}
                                   for st in m.status if st.name == DETECTOR_STATUS), 50)
-    node = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=1.0",
-                       "-p", "detector.settle_s:=0.2")
+    node = procs.start("dvt_model_node", "--ros-args", *params)
     listener.spin_until(lambda: listener.node.count_publishers(MODEL_RESIDUAL) > 0,
                         20.0, "model node publishers")
     replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")
     listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")
     listener.spin_until(lambda: statuses and int(statuses[-1].get("tested", "0")) > 0, 15.0,
                         "the detector testing the replayed residual")
+    return listener, node, statuses
+
+
+def test_change_detector_wiring(procs, rclpy_context, tmp_path):
+    """The detector runs on the replayed residual (status in /diagnostics), its parameters are
+    read-only, a model change resets it, and invalid detector settings refuse the start."""
+    bad = procs.start("dvt_model_node", "--ros-args", "-p", "detector.learn_s:=0.2")
+    wait_for(lambda: bad.poll() is not None, 30.0, "the refused start")
+    assert bad.returncode == 2
+    assert "detector.learn_s: expected at least 100 samples" in procs.log(bad)
+    assert "0.2" in procs.log(bad)
+
+    listener, node, statuses = _detector_on_replay(
+        procs, rclpy_context, tmp_path, "-p", "detector.learn_s:=1.0",
+        "-p", "detector.settle_s:=0.2")
     last = statuses[-1]
     assert last["state"] == "testing" and last["alarms"] == "0", last
     assert last["anchor_restarts"] == "1" and last["resets"] == "0", last
@@ -478,7 +487,6 @@ def test_colour_file_carries_the_colour_into_a_start(procs, rclpy_context, tmp_p
     not used, with the reason and the path in the log, and the node runs without it."""
     from dvt_model.config import detector_config, model_key
     from dvt_model.detect import CarriedColour
-    from dvt_model.node import DETECTOR_STATUS
 
     args = {"detector.learn_s": 1.0, "detector.settle_s": 0.2}
     setup = detector_config(args)
@@ -501,20 +509,7 @@ def test_colour_file_carries_the_colour_into_a_start(procs, rclpy_context, tmp_p
     procs.stop(other)
 
     replace(colour, model=model_key({})).save(path)
-    bag = _simulated_bag(tmp_path / "run", seconds=3.0)
-    listener = _Listener(rclpy_context)
-    statuses: list[dict[str, str]] = []
-    listener.node.create_subscription(
-        DiagnosticArray, DIAGNOSTICS,
-        lambda m: statuses.extend({kv.key: kv.value for kv in st.values}
-                                  for st in m.status if st.name == DETECTOR_STATUS), 50)
-    node = procs.start("dvt_model_node", *ros_args)
-    listener.spin_until(lambda: listener.node.count_publishers(MODEL_RESIDUAL) > 0,
-                        20.0, "model node publishers")
-    replay = procs.start("dvt-replay", str(bag), "--rate", "1.0", "--wait-subscribers", "1")
-    listener.spin_until(lambda: replay.poll() is not None, 60.0, "replay to finish")
-    listener.spin_until(lambda: statuses and int(statuses[-1].get("tested", "0")) > 0, 15.0,
-                        "the detector testing the replayed residual")
+    _, node, statuses = _detector_on_replay(procs, rclpy_context, tmp_path, *ros_args[1:])
     last = statuses[-1]
     assert last["state"] == "testing" and last["colour_carried"] == "true", last
     assert last["sun_shaft.ar_order"] == "2" and last["carrier3.ar_order"] == "1", last
