@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import gc
 import multiprocessing as mp
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
@@ -51,11 +52,11 @@ from scipy.stats import beta
 from dvt_driver.plant.core import PlantSim
 from dvt_driver.plant.hidden import parse_hidden
 from dvt_driver.plant.offline import predicted_held_current
-from dvt_model.config import detector_config
+from dvt_model.config import DetectorSetup, detector_config
 from dvt_model.contract import DETECTOR_PREFIX
 from dvt_model.detect import COLOUR_CHUNK_S, ChangeDetector
 from dvt_model.detect_sim import rate_bounds
-from dvt_model.params import load_parameters
+from dvt_model.params import TransmissionParams, load_parameters
 from dvt_model.predictor import ResidualBlocks
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
@@ -98,6 +99,27 @@ WITHIN = (-3.0, LATE_TOL)  # the window the estimate falls in in most runs [s]
 WITHIN_AT_LEAST = 0.80  # ... the fraction the data must be consistent with
 
 
+def node_blocks(sim: PlantSim, params: TransmissionParams, setup: DetectorSetup,
+                end: float) -> Iterator[tuple[float, float, list[float]]]:
+    """The residual the model node's detector sees on ``sim`` until plant time ``end`` [s]: the
+    prediction of the drive at ``CURRENT_A`` with ``params`` (the node starting ``LEAD_S``
+    after the motor), nothing for ``setup.settle_s`` after each anchor, then the node's
+    residual blocks (:class:`~dvt_model.predictor.ResidualBlocks`). Yields (the plant time [s]
+    the settling after the latest anchor ended, the block's stamp [s], its residual, one value
+    per output)."""
+    blocks = ResidualBlocks(setup.block, 2, setup.config.max_gap_s)
+    settle_until = float("inf")
+    for t, p in predicted_held_current(sim, params, CURRENT_A, end, LEAD_S):
+        if p.anchored:
+            blocks.clear()
+            settle_until = t + setup.settle_s
+        if t < settle_until:
+            continue
+        block = blocks.add(t, p.residual.tolist())
+        if block is not None:
+            yield settle_until, block[0], block[1]
+
+
 def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: float | None = None,
               colour: bool = False) -> tuple[list[dict[str, Any]], float, float | None, float]:
     """One clean plant through the node's path, tested ``test_s`` after the first reference
@@ -117,34 +139,28 @@ def node_path(seed: int, learn_s: float | None, test_s: float, step_after_s: flo
     step_at = None if step_after_s is None else tested_from + step_after_s
     hidden = None if step_at is None else parse_hidden(
         {"changes": [{"at": step_at, "coulomb": STEP}]}, source="test")
-    blocks = ResidualBlocks(setup.block, 2, cfg.max_gap_s)
     det = ChangeDetector(cfg)
     end = (tested_from if step_at is None else step_at) + test_s
     if colour:  # the colour's history, a chunk's slack and the new reference window
         end += cfg.colour_s + COLOUR_CHUNK_S + cfg.learn_s
-    settle_until = float("inf")
     alarms: list[dict[str, Any]] = []
     tested = [0, 0]  # samples tested before the full colour, with it
+    settled = float("nan")
     sim = PlantSim(params, hidden, seed=seed)
-    for t, p in predicted_held_current(sim, params, CURRENT_A, end, LEAD_S):
-        if p.anchored:
+    for since, stamp, values in node_blocks(sim, params, setup, end):
+        if since != settled:  # anchored again
             det.reset()
-            blocks.clear()
-            settle_until = t + setup.settle_s
-        if t < settle_until:
-            continue
-        block = blocks.add(t, p.residual.tolist())
-        if block is not None:
-            phase = int(det.colour_complete)
-            before = det.counters.tested
-            alarm = det.update(block[0], block[1])
-            tested[phase] += det.counters.tested - before
-            if alarm is not None:
-                alarms.append({**alarm.to_dict(), "colour": bool(phase)})
-                if step_at is not None and alarm.stamp_s >= step_at:
-                    break
-            if colour and tested[1] >= test_s * cfg.sample_rate_hz:
+            settled = since
+        phase = int(det.colour_complete)
+        before = det.counters.tested
+        alarm = det.update(stamp, values)
+        tested[phase] += det.counters.tested - before
+        if alarm is not None:
+            alarms.append({**alarm.to_dict(), "colour": bool(phase)})
+            if step_at is not None and alarm.stamp_s >= step_at:
                 break
+        if colour and tested[1] >= test_s * cfg.sample_rate_hz:
+            break
     true_step = (float(sim.changes_applied[0]["at_s"]) if sim.changes_applied else None)
     rate = cfg.sample_rate_hz
     return (alarms, tested[int(colour)] / rate, true_step,
@@ -229,34 +245,23 @@ def carried_starts(seed: int) -> tuple[int, float, int]:
     setup = detector_config({})
     assert setup is not None
     cfg = setup.config
-    blocks = ResidualBlocks(setup.block, 2, cfg.max_gap_s)
     earlier = ChangeDetector(cfg)
     det: ChangeDetector | None = None
     carried = None
     alarms, tested, used, started = 0, 0, 0, 0.0
     end = LEAD_S + setup.settle_s + CARRY_S + 60.0 * CARRY_STARTS
-    settle_until = float("inf")
     sim = PlantSim(params, None, seed=seed)
-    for t, p in predicted_held_current(sim, params, CURRENT_A, end, LEAD_S):
-        if p.anchored:
-            blocks.clear()
-            settle_until = t + setup.settle_s
-        if t < settle_until:
-            continue
-        block = blocks.add(t, p.residual.tolist())
-        if block is None:
-            continue
-        stamp = block[0]
+    for since, stamp, values in node_blocks(sim, params, setup, end):
         if det is None and carried is None:
-            earlier.update(stamp, block[1])
-            if stamp - settle_until >= CARRY_S:
+            earlier.update(stamp, values)
+            if stamp - since >= CARRY_S:
                 carried = earlier.carry()
                 assert carried is not None, f"seed {seed}: no full colour in {CARRY_S:g} s"
         if carried is not None and (det is None or stamp - started >= 60.0):
             det, started = ChangeDetector(cfg, carried), stamp
         if det is not None and stamp - started < 60.0:
             before = det.counters.tested
-            alarms += det.update(stamp, block[1]) is not None
+            alarms += det.update(stamp, values) is not None
             tested += det.counters.tested - before
             if det.colour_carried and det.references and all(
                     r.order > 0 for r in det.references) and det.counters.tested == 1:
