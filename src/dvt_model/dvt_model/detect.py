@@ -885,6 +885,7 @@ class ChangeDetector:
         self._w = 0
         self._hist = 0
         self._carried: CarriedColour | None = None
+        self._carried_chunks = 0  # chunks of this run that measured the carried colour
         if carried is not None:
             why = carried.mismatch(self.config)
             if why is not None:
@@ -1157,8 +1158,20 @@ class ChangeDetector:
         total = sum(mm for _, mm, _ in self._pool)
         while self._pool and total - self._pool[0][1] >= need:
             total -= self._pool.popleft()[1]
-        if total < min(need, self._chunk_len) or (self._carried is not None and total < need):
-            return False  # a carried colour stays until this run's own history is full
+        if self._carried is not None and total < need and self._colour is not None:
+            # the carried colour stays until this run's own history is full; how far it
+            # whitens this run, measured again on the newest chunk (out of sample), and the
+            # reference in use whitened again with it, as a growing colour is
+            colour = self._colour
+            self._colour_lam = [long_run_spread(_ar_whiten(raw[i], colour[i]),
+                                                self.config.sample_rate_hz)
+                                for i in range(self.n)]
+            self._carried_chunks += 1
+            if not self.learning and self._order > 0:
+                self._rewhiten()
+            return False
+        if total < min(need, self._chunk_len):
+            return False
         acov = np.sum([pp for _, _, pp in self._pool], axis=0) / total
         first = self._colour is None
         previous = self._colour
@@ -1203,8 +1216,9 @@ class ChangeDetector:
 
     def _finish_learning(self, count: bool = True) -> None:
         colour = self._colour
-        if self._carried is not None and colour is not None:
-            # how far the carried colour whitens this run: this window whitened by it
+        if self._carried is not None and colour is not None and not self._carried_chunks:
+            # how far the carried colour whitens this run: this window whitened by it (until
+            # a chunk of this run measures it, :meth:`_end_chunk`)
             self._colour_lam = [long_run_spread(_ar_whiten(np.asarray(self._buf[i]), colour[i]),
                                                 self.config.sample_rate_hz)
                                 for i in range(self.n)]

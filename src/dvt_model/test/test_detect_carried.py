@@ -241,3 +241,23 @@ def test_the_keepers_path_expands_the_home_directory(monkeypatch: pytest.MonkeyP
     monkeypatch.setenv("HOME", str(tmp_path))
     keeper = ColourKeeper("~/colour.json", "model-a")
     assert keeper.path == tmp_path / "colour.json"
+
+
+def test_each_chunk_measures_the_carried_colour_again_without_a_new_window() -> None:
+    """At each chunk's end while the colour is carried (60 and 120 s of 180), the ratio its
+    whitening leaves is measured again on that chunk (60 s, out of sample) and the reference in
+    use is whitened again with it: testing goes on (no new window), the threshold changes."""
+    cfg = config(180.0)
+    carried = replace(earlier_run(), samples=cfg.colour_samples)
+    det = ChangeDetector(cfg, carried)
+    x = coloured(np.random.default_rng(9), round(130 * RATE))
+    seen = []  # (sample, learning, lam per output) at each chunk end
+    for j, row in enumerate(x.tolist()):
+        det.update(j / RATE, row)
+        if j in (round(60 * RATE) - 2, round(60 * RATE) - 1, round(120 * RATE) - 1):
+            seen.append((j, det.learning, [r.lam for r in det.references],
+                         [r.h for r in det.references]))
+    before, at60, at120 = seen
+    assert not at60[1] and not at120[1]  # testing throughout
+    assert at60[3] != before[3] and at120[3] != at60[3]  # whitened again: other thresholds
+    assert det.colour_carried and det.counters.learned == 1  # the one window after the start
