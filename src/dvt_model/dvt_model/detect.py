@@ -75,9 +75,11 @@ points), higher than the ARMA's design by itself (docs/loop.md "Limits"). With
 A colour carried from an earlier run of the same model (:class:`CarriedColour`, written and
 read by :class:`ColourKeeper`: the model node's ``detector.colour_file``) stands in for the
 first minute's and the growing colour: it whitens every reference window from the first on,
-each designing ``h`` over the long-run variance ratio of that window whitened by it, with its
-uncertainty (out of sample), until the run's own history reaches ``colour_s``; then the own
-full colour replaces it with a new reference window (docs/loop.md, "Colour", item 6).
+until the run's own history reaches ``colour_s``; then the own full colour replaces it with a
+new reference window (docs/loop.md, "Colour", item 6). ``h`` is designed over the long-run
+variance ratio of the residual whitened by it, with its uncertainty (out of sample): of the
+first window until a chunk of the run ends, then of the newest chunk, each chunk whitening the
+reference in use again as a growing colour does.
 
 On an alarm the detector returns an :class:`Alarm` (detection stamp, the estimated change time =
 the stamp of the first sample after the CUSUM's last zero, output, direction, estimated shift),
@@ -831,10 +833,11 @@ class ChangeDetector:
 
     ``carried``: the colour of an earlier run of the same model (:meth:`carry`), used from the
     first reference window on until this run's own history reaches ``colour_s`` (then its own
-    full colour replaces it, as below); each reference window it whitens designs ``h`` over
-    the long-run variance ratio of that window whitened by it, with its uncertainty (out of
-    sample: the carried colour never saw this run). :class:`ParameterError` when it does not
-    fit ``config`` (:meth:`CarriedColour.mismatch`).
+    full colour replaces it, as below); ``h`` is designed over the long-run variance ratio of
+    the residual whitened by it, with its uncertainty (out of sample: the carried colour never
+    saw this run), measured on the first reference window, then again on each new chunk of the
+    run (the reference in use whitened again). :class:`ParameterError` when it does not fit
+    ``config`` (:meth:`CarriedColour.mismatch`).
     """
 
     def __init__(self, config: DetectorConfig | None = None,
