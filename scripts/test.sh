@@ -27,5 +27,7 @@ if [ "$fast" = 1 ]; then
   exec pytest src/dvt_model/test src/dvt_driver/test src/dvt_identify/test tests \
     -m "not ros and not slow and not peer" "$@"
 fi
-# the optional CasADi peer's fits (marker peer) take tens of minutes each: `pytest -m peer`
-exec pytest src/dvt_model/test src/dvt_driver/test src/dvt_identify/test tests -m "not peer" "$@"
+# the optional CasADi peer's fits (marker peer) take tens of minutes each: `pytest -m peer`;
+# the 30 longest tests are listed at the end (where the suite's time goes)
+exec pytest src/dvt_model/test src/dvt_driver/test src/dvt_identify/test tests -m "not peer" \
+  --durations=30 "$@"
