@@ -888,7 +888,7 @@ class ChangeDetector:
         self._w = 0
         self._hist = 0
         self._carried: CarriedColour | None = None
-        self._carried_chunks = 0  # chunks of this run that measured the carried colour
+        self._carried_measured = False  # a chunk of this run measured the carried colour
         if carried is not None:
             why = carried.mismatch(self.config)
             if why is not None:
@@ -1161,15 +1161,12 @@ class ChangeDetector:
         total = sum(mm for _, mm, _ in self._pool)
         while self._pool and total - self._pool[0][1] >= need:
             total -= self._pool.popleft()[1]
-        if self._carried is not None and total < need and self._colour is not None:
+        if self._carried is not None and total < need:
             # the carried colour stays until this run's own history is full; how far it
             # whitens this run, measured again on the newest chunk (out of sample), and the
             # reference in use whitened again with it, as a growing colour is
-            colour = self._colour
-            self._colour_lam = [long_run_spread(_ar_whiten(raw[i], colour[i]),
-                                                self.config.sample_rate_hz)
-                                for i in range(self.n)]
-            self._carried_chunks += 1
+            self._colour_lam = self._left_ratio(raw, self._carried.coef)
+            self._carried_measured = True
             if not self.learning and self._order > 0:
                 self._rewhiten()
             return False
@@ -1186,9 +1183,8 @@ class ChangeDetector:
         # whitened by the colour before it (out of sample; the first by its own, in sample),
         # allowed for in the threshold until the colour has its full history (then the
         # design holds: docs/loop.md "Colour")
-        self._colour_lam = [(1.0,) if total >= need else long_run_spread(
-            _ar_whiten(raw[i], (self._colour if previous is None else previous)[i]),
-            self.config.sample_rate_hz) for i in range(self.n)]
+        self._colour_lam = ([(1.0,)] * self.n if total >= need else self._left_ratio(
+            raw, self._colour if previous is None else previous))
         # a colour on the full history replaces a shorter one in a reference being tested
         # (one being learned takes the newest colour when it ends)
         testing = not self.learning and self._order > 0
@@ -1211,6 +1207,15 @@ class ChangeDetector:
                      threshold=ref.h, samples=count, shift=shift,
                      shift_sigma=shift / ref.sigma, level=ref.level, sigma=ref.sigma)
 
+    def _left_ratio(self, series: Sequence[Any], colour: Sequence[Any]
+                    ) -> list[tuple[float, ...]]:
+        """Per output, the long-run variance ratio that ``colour`` (AR coefficients per
+        output) leaves in ``series`` (1-D per output, [rad/s]) once whitened by it, with its
+        uncertainty (:func:`long_run_spread`)."""
+        return [long_run_spread(_ar_whiten(np.asarray(series[i], dtype=float),
+                                           np.asarray(colour[i], dtype=float)),
+                                self.config.sample_rate_hz) for i in range(self.n)]
+
     def _rewhiten(self) -> None:
         """Whiten by the newest colour (on a longer, not yet full history) from now on: the
         references of the same reference window again, with its long-run variance ratio;
@@ -1219,12 +1224,10 @@ class ChangeDetector:
 
     def _finish_learning(self, count: bool = True) -> None:
         colour = self._colour
-        if self._carried is not None and colour is not None and not self._carried_chunks:
+        if self._carried is not None and not self._carried_measured:
             # how far the carried colour whitens this run: this window whitened by it (until
             # a chunk of this run measures it, :meth:`_end_chunk`)
-            self._colour_lam = [long_run_spread(_ar_whiten(np.asarray(self._buf[i]), colour[i]),
-                                                self.config.sample_rate_hz)
-                                for i in range(self.n)]
+            self._colour_lam = self._left_ratio(self._buf, self._carried.coef)
         refs = [reference_from_window(np.asarray(self._buf[i]), self.config,
                                       None if colour is None else colour[i],
                                       self._colour_lam[i] if colour is not None else
